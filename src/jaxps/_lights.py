@@ -1,0 +1,127 @@
+"""Light directions: construction from angles, the ``lights.txt`` format, Yale B names, validation.
+
+Lights are ``(K, 3)`` unit vectors from the surface toward the light in the camera frame of
+DESIGN.md (x right, y up, z toward the viewer), or ``(K, H, W, 3)`` per pixel for near lights.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+import numpy as np
+from jaxtyping import ArrayLike, Float
+
+__all__ = [
+    "lights_from_angles",
+    "load_lights",
+    "parse_yale_name",
+    "validate_lights",
+]
+
+# Condition number above which a light set is treated as not spanning 3-D.
+MAX_LIGHT_CONDITION = 1e4
+
+_YALE_RE = re.compile(r"_P\d+A([+-]\d+)E([+-]\d+)(?:\.[A-Za-z0-9]+)?$")
+
+
+def lights_from_angles(
+    azimuth_deg: Float[ArrayLike, " K"], elevation_deg: Float[ArrayLike, " K"]
+) -> Float[np.ndarray, "K 3"]:
+    """Unit light vectors from Yale B azimuth/elevation angles.
+
+    $l = (-\\cos E \\sin A,\\ \\sin E,\\ \\cos E \\cos A)$: a positive azimuth lights the image's
+    left side (the subject's right), a positive elevation lights from above; (0, 0) is the
+    camera axis. Convention checked on the Extended Yale B images (shared/data/README.md).
+
+    **Arguments:**
+    - `azimuth_deg`, `elevation_deg`: `(K,)` angles in degrees (scalars are promoted to K=1).
+
+    **Returns:** `(K, 3)` float32 unit vectors.
+    """
+    a = np.radians(np.atleast_1d(np.asarray(azimuth_deg, dtype=np.float64)))
+    e = np.radians(np.atleast_1d(np.asarray(elevation_deg, dtype=np.float64)))
+    if a.shape != e.shape or a.ndim != 1:
+        raise ValueError(
+            f"azimuth_deg and elevation_deg must be 1-D and the same length, got shapes "
+            f"{a.shape} and {e.shape}"
+        )
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(e))):
+        raise ValueError("azimuth_deg and elevation_deg must be finite")
+    lights = np.stack([-np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)], axis=-1)
+    return lights.astype(np.float32)
+
+
+def parse_yale_name(name: str | os.PathLike) -> tuple[float, float] | None:
+    """Azimuth and elevation in degrees from a Yale B file name, or ``None``.
+
+    ``yaleB01_P00A+035E+15.pgm`` -> ``(35.0, 15.0)``; ``yaleB01_P00_Ambient.pgm`` -> ``None``.
+    """
+    m = _YALE_RE.search(os.path.basename(os.fspath(name)))
+    if m is None:
+        return None
+    return float(m.group(1)), float(m.group(2))
+
+
+def load_lights(path: str | os.PathLike) -> Float[np.ndarray, "K 3"]:
+    """Read a ``lights.txt`` file: an optional first line with the count, then ``x y z`` per line.
+
+    The vectors are taken in the camera frame of DESIGN.md (x right, y up, z toward the viewer);
+    the shared psm ``lights.txt`` uses that frame (checked against its chrome sphere:
+    highlight directions agree within ~2-9 degrees). Rows are unit-normalised and validated.
+
+    **Raises:** `FileNotFoundError` if the file is missing; `ValueError` naming the file if it
+    cannot be parsed, the count disagrees with the rows, or the lights fail `validate_lights`.
+    """
+    path = os.fspath(path)
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"lights file not found: {path}")
+    rows = []
+    with open(path) as f:
+        for line in f:
+            line = line.split("#", 1)[0].strip()
+            if line:
+                rows.append(line.replace(",", " ").split())
+    try:
+        count = None
+        if rows and len(rows[0]) == 1:
+            count = int(rows[0][0])
+            rows = rows[1:]
+        data = np.array([[float(v) for v in r] for r in rows], dtype=np.float64)
+    except ValueError as err:
+        raise ValueError(f"cannot parse lights file {path}: {err}") from None
+    if data.ndim != 2 or data.shape[1] != 3:
+        raise ValueError(f"lights file {path}: expected 3 numbers per line, got rows {rows[:3]}")
+    if count is not None and count != len(data):
+        raise ValueError(f"lights file {path}: header says {count} lights, found {len(data)}")
+    try:
+        return validate_lights(data)
+    except ValueError as err:
+        raise ValueError(f"lights file {path}: {err}") from None
+
+
+def validate_lights(lights: Float[ArrayLike, "K 3"]) -> Float[np.ndarray, "K 3"]:
+    """Check a light set and return it unit-normalised as float32.
+
+    **Raises:** `ValueError` if `lights` is not `(K, 3)`, has K < 3, contains NaN/Inf or zero
+    vectors, or does not span 3-D (condition number above 1e4, which is reported).
+    """
+    lights = np.asarray(lights, dtype=np.float64)
+    if lights.ndim != 2 or lights.shape[-1] != 3:
+        raise ValueError(f"lights must have shape (K, 3), got {lights.shape}")
+    if lights.shape[0] < 3:
+        raise ValueError(f"photometric stereo needs at least 3 lights, got K={lights.shape[0]}")
+    if not np.all(np.isfinite(lights)):
+        raise ValueError("lights contain NaN or Inf")
+    norms = np.linalg.norm(lights, axis=1)
+    if np.any(norms < 1e-8):
+        bad = np.flatnonzero(norms < 1e-8).tolist()
+        raise ValueError(f"lights {bad} are zero vectors")
+    lights = lights / norms[:, None]
+    cond = np.linalg.cond(lights)
+    if not np.isfinite(cond) or cond > MAX_LIGHT_CONDITION:
+        raise ValueError(
+            f"lights do not span 3-D (condition number {cond:.3g} > {MAX_LIGHT_CONDITION:.0e}); "
+            "coplanar or repeated light directions cannot determine a normal"
+        )
+    return lights.astype(np.float32)
