@@ -23,6 +23,7 @@ class Status(enum.IntEnum):
     DEGENERATE = 6
     BACKFACING = 7
     NOT_CONVERGED = 8
+    AT_BOUND = 9
 
     @property
     def message(self) -> str:
@@ -39,6 +40,7 @@ _MESSAGES = {
     Status.DEGENERATE: "the usable lights do not span 3-D (ill-conditioned solve)",
     Status.BACKFACING: "the solved normal faces away from the camera (n_z < 0)",
     Status.NOT_CONVERGED: "an iterative solve hit its step limit",
+    Status.AT_BOUND: "a fitted parameter ended at its bound",
 }
 
 
