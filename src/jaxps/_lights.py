@@ -82,16 +82,17 @@ def load_lights(path: str | os.PathLike) -> Float[np.ndarray, "K 3"]:
             line = line.split("#", 1)[0].strip()
             if line:
                 rows.append(line.replace(",", " ").split())
+    count = None
+    if rows and len(rows[0]) == 1:
+        count = rows.pop(0)[0]
+    bad = [r for r in rows if len(r) != 3]
+    if bad:
+        raise ValueError(f"lights file {path}: expected 3 numbers per line, got {bad[0]}")
     try:
-        count = None
-        if rows and len(rows[0]) == 1:
-            count = int(rows[0][0])
-            rows = rows[1:]
-        data = np.array([[float(v) for v in r] for r in rows], dtype=np.float64)
+        count = None if count is None else int(count)
+        data = np.array([[float(v) for v in r] for r in rows], dtype=np.float64).reshape(-1, 3)
     except ValueError as err:
         raise ValueError(f"cannot parse lights file {path}: {err}") from None
-    if data.ndim != 2 or data.shape[1] != 3:
-        raise ValueError(f"lights file {path}: expected 3 numbers per line, got rows {rows[:3]}")
     if count is not None and count != len(data):
         raise ValueError(f"lights file {path}: header says {count} lights, found {len(data)}")
     try:

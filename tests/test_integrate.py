@@ -1,0 +1,93 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxps
+
+
+def periodic_surface(h=64, w=80):
+    """z = 3 sin(2 pi x / W) cos(4 pi y / H) + sin(2 pi y / H): exactly periodic, band-limited."""
+    x = np.arange(w)[None, :] * np.ones((h, 1))
+    y = -np.arange(h)[:, None] * np.ones((1, w))  # y up: one row down is -1 in y
+    ax, ay = 2 * np.pi / w, 2 * np.pi / h
+    z = 3 * np.sin(ax * x) * np.cos(2 * ay * y) + np.sin(ay * y)
+    p = 3 * ax * np.cos(ax * x) * np.cos(2 * ay * y)
+    q = -6 * ay * np.sin(ax * x) * np.sin(2 * ay * y) + ay * np.cos(ay * y)
+    n = np.stack([-p, -q, np.ones_like(p)], -1)
+    return z, (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def test_fc_recovers_integrable_surface_up_to_offset():
+    z, n = periodic_surface()
+    rec = np.asarray(jaxps.integrate(n))
+    assert rec.dtype == np.float32
+    np.testing.assert_allclose(rec - rec.mean(), z - z.mean(), atol=2e-4)
+
+
+def test_fc_pixel_size_scales_height():
+    z, n = periodic_surface()
+    a = np.asarray(jaxps.integrate(n))
+    b = np.asarray(jaxps.integrate(n, pixel_size=0.5))
+    np.testing.assert_allclose(b, 0.5 * a, rtol=1e-5, atol=1e-6)
+
+
+def test_fc_face_and_mask_mean_zero():
+    s = jaxps.synthetic.face_like(96)
+    z = np.asarray(jaxps.integrate(s.normals, mask=s.mask))
+    m = np.asarray(s.mask)
+    truth = np.asarray(s.height)
+    assert abs(z[m].mean()) < 1e-3
+    err = (z - truth)[m] - (z - truth)[m].mean()
+    # Non-periodic relief inside a flat (zero-gradient) surround: small but not exact.
+    assert np.sqrt(np.mean(err**2)) < 0.02 * np.ptp(truth[m])
+
+
+def test_normals_from_height_of_plane_and_roundtrip():
+    h, w = 20, 30
+    x = np.arange(w)[None, :] * np.ones((h, 1))
+    y = -np.arange(h)[:, None] * np.ones((1, w))
+    z = 0.3 * x - 0.2 * y  # p = 0.3, q = -0.2
+    n = np.asarray(jaxps.normals_from_height(z.astype(np.float32)))
+    expected = np.array([-0.3, 0.2, 1.0]) / np.linalg.norm([-0.3, 0.2, 1.0])
+    np.testing.assert_allclose(n, np.broadcast_to(expected, n.shape), atol=1e-6)
+    zp, n_smooth = periodic_surface(128, 128)
+    back = np.asarray(jaxps.normals_from_height(zp.astype(np.float32)))
+    err = np.asarray(jaxps.angular_error(back, n_smooth))[1:-1, 1:-1]
+    assert err.max() < 0.2  # central differences on a smooth surface
+
+
+def test_nan_normals_give_finite_height():
+    _, n = periodic_surface()
+    n = n.copy()
+    n[5, 5] = np.nan
+    z = np.asarray(jaxps.integrate(n))
+    assert np.all(np.isfinite(z))
+
+
+def test_float64_kept():
+    _, n = periodic_surface()
+    with jax.enable_x64(True):
+        z = jaxps.integrate(n.astype(np.float64))
+        assert z.dtype == jnp.float64
+
+
+@pytest.mark.parametrize(
+    "normals, kwargs, match",
+    [
+        (np.zeros((4, 4, 2), np.float32), {}, r"\(H, W, 3\)"),
+        (np.zeros((4, 4, 3), np.int32), {}, "floating point"),
+        (np.zeros((4, 4, 3), np.float32), {"mask": np.ones((3, 4), bool)}, "mask must have"),
+        (np.zeros((4, 4, 3), np.float32), {"mask": np.zeros((4, 4), bool)}, "mask is empty"),
+        (np.zeros((4, 4, 3), np.float32), {"method": "nope"}, "method must be one of"),
+        (np.zeros((4, 4, 3), np.float32), {"pixel_size": 0.0}, "pixel_size"),
+    ],
+)
+def test_bad_input(normals, kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        jaxps.integrate(normals, **kwargs)
+
+
+def test_normals_from_height_bad_input():
+    with pytest.raises(ValueError, match="2-D height map"):
+        jaxps.normals_from_height(np.zeros((3, 3, 1), np.float32))

@@ -1,0 +1,72 @@
+import numpy as np
+import pytest
+
+import jaxps
+
+
+def test_lights_from_angles_yale_convention():
+    l = jaxps.lights_from_angles([0, 90, 0, 35], [0, 0, 90, 15])
+    np.testing.assert_allclose(l[0], [0, 0, 1], atol=1e-7)
+    np.testing.assert_allclose(l[1], [-1, 0, 0], atol=1e-7)  # +azimuth lights the image's left
+    np.testing.assert_allclose(l[2], [0, 1, 0], atol=1e-7)  # +elevation lights from above
+    a, e = np.radians(35), np.radians(15)
+    np.testing.assert_allclose(l[3], [-np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)],
+                               rtol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(l, axis=1), 1, rtol=1e-6)
+    assert l.dtype == np.float32
+
+
+def test_parse_yale_name():
+    assert jaxps.parse_yale_name("yaleB01_P00A+035E+15.pgm") == (35.0, 15.0)
+    assert jaxps.parse_yale_name("/x/yaleB02_P00A-110E-20.pgm") == (-110.0, -20.0)
+    assert jaxps.parse_yale_name("yaleB01_P00_Ambient.pgm") is None
+    assert jaxps.parse_yale_name("cat.0.png") is None
+
+
+def test_load_lights_normalises(tmp_path):
+    f = tmp_path / "lights.txt"
+    f.write_text("3\n2 0 2\n0 0 3\n0 1 1\n")
+    l = jaxps.load_lights(f)
+    np.testing.assert_allclose(l[0], [2**-0.5, 0, 2**-0.5], rtol=1e-6)
+    np.testing.assert_allclose(np.linalg.norm(l, axis=1), 1, rtol=1e-6)
+    f.write_text("0 0 1\n1 0 1\n0 1 1\n")  # no count line
+    assert jaxps.load_lights(f).shape == (3, 3)
+
+
+def test_load_shared_psm_lights(data):
+    l = jaxps.load_lights(data / "psm" / "lights.txt")
+    assert l.shape == (12, 3)
+    assert np.all(l[:, 2] > 0.7)  # all lights in front, z toward the viewer
+
+
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ("4\n0 0 1\n1 0 1\n0 1 1\n", "header says 4"),
+        ("0 0 1\n1 0\n", "3 numbers"),
+        ("0 0 1\n1 0 x\n0 1 1\n", "cannot parse"),
+        ("0 0 1\n1 0 1\n", "at least 3"),
+        ("0 0 1\n1 0 1\n2 0 2\n", "condition number"),
+        ("0 0 1\n0 0 0\n0 1 1\n", "zero vectors"),
+    ],
+)
+def test_load_lights_errors_name_the_file(tmp_path, text, match):
+    f = tmp_path / "bad_lights.txt"
+    f.write_text(text)
+    with pytest.raises(ValueError, match=match) as err:
+        jaxps.load_lights(f)
+    assert "bad_lights.txt" in str(err.value)
+
+
+def test_missing_lights_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="nothere.txt"):
+        jaxps.load_lights(tmp_path / "nothere.txt")
+
+
+def test_validate_lights_errors():
+    with pytest.raises(ValueError, match=r"\(K, 3\)"):
+        jaxps.validate_lights(np.ones((4, 2)))
+    with pytest.raises(ValueError, match="NaN"):
+        jaxps.validate_lights([[0, 0, 1], [1, 0, 1], [np.nan, 1, 1]])
+    with pytest.raises(ValueError, match="same length"):
+        jaxps.lights_from_angles([0, 1], [0])

@@ -1,0 +1,207 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import face_scene, sphere_scene
+
+import jaxps
+from jaxps import Status
+
+
+def numpy_reference(images, lights, used=None):
+    """Per-pixel numpy lstsq over the used samples: returns (normals, albedo) as float64."""
+    k, h, w = images.shape
+    flat = np.asarray(images, np.float64).reshape(k, -1)
+    used = np.ones_like(flat, bool) if used is None else np.asarray(used).reshape(k, -1)
+    lights = np.asarray(lights, np.float64)
+    b = np.zeros((flat.shape[1], 3))
+    for j in range(flat.shape[1]):
+        u = used[:, j]
+        if u.sum() >= 3:
+            b[j] = np.linalg.lstsq(lights[u], flat[u, j], rcond=None)[0]
+    rho = np.linalg.norm(b, axis=1)
+    n = b / np.where(rho > 0, rho, 1)[:, None]
+    return n.reshape(h, w, 3), rho.reshape(h, w)
+
+
+@pytest.mark.parametrize("scene", [sphere_scene, face_scene], ids=["sphere", "face"])
+def test_noise_free_recovery(scene):
+    s = scene(96)
+    res = jaxps.photometric_stereo(s.images, s.lights, mask=s.mask)
+    ok = np.asarray(res.status == Status.OK)
+    assert ok[np.asarray(s.mask)].mean() > 0.99
+    err = np.asarray(jaxps.angular_error(res.normals, s.normals))[ok]
+    assert np.median(err) < 0.05
+    assert np.abs(np.asarray(res.albedo - s.albedo))[ok].max() < 1e-3
+    assert res.normals.dtype == jnp.float32 and res.albedo.dtype == jnp.float32
+
+
+def test_vmap_equals_numpy_lstsq_per_pixel():
+    # Random intensities (not Lambertian) so the least-squares residual is non-zero.
+    rng = np.random.default_rng(0)
+    lights = jaxps.lights_from_angles([0, 30, -30, 10, -15, 0], [0, 5, -5, 30, -25, 45])
+    images = rng.uniform(0.05, 0.9, (6, 8, 9)).astype(np.float32)
+    images[:, :, :4] += 0.5 * np.einsum("kc,c->k", lights, [0, 0, 1])[:, None, None]
+    images = np.minimum(images, 0.99).astype(np.float32)
+    res = jaxps.photometric_stereo(images, lights, dark_threshold=0.0)
+    n_ref, rho_ref = numpy_reference(images, lights)
+    back = n_ref[..., 2] < 0
+    ok = np.asarray(res.status) == Status.OK
+    np.testing.assert_array_equal(ok, ~back)
+    np.testing.assert_allclose(np.asarray(res.normals)[ok], n_ref[ok], atol=2e-5)
+    np.testing.assert_allclose(np.asarray(res.albedo)[ok], rho_ref[ok], rtol=2e-5)
+    # The residual is the RMS misfit of the Lambertian model over the used samples.
+    pred = np.einsum("kc,hwc->khw", lights, n_ref) * rho_ref
+    rms = np.sqrt(np.mean((images - pred) ** 2, axis=0))
+    np.testing.assert_allclose(np.asarray(res.residual)[ok], rms[ok], atol=2e-5)
+
+
+def test_dropped_samples_match_lstsq_on_remaining_rows():
+    rng = np.random.default_rng(1)
+    s = face_scene(48, lights=jaxps.lights_from_angles([0, 25, -25, 0, 0, 15, -15],
+                                                       [0, 0, 0, 20, -20, 15, -15]))
+    images = np.array(s.images)
+    images[2, :20] = 1.0  # saturated block
+    images[5, 10:30] *= 0.0  # shadowed block
+    images[4][rng.uniform(size=images[4].shape) < 0.1] = np.nan
+    res = jaxps.photometric_stereo(images, s.lights, mask=s.mask, shadow_threshold=1e-3)
+    used = np.isfinite(images) & (images < 1.0) & (images >= 1e-3)
+    n_ref, rho_ref = numpy_reference(np.nan_to_num(images), s.lights, used)
+    ok = np.asarray(res.status) == Status.OK
+    assert ok.sum() > 0.95 * np.asarray(s.mask).sum()
+    np.testing.assert_array_equal(np.asarray(res.n_used)[ok], used.sum(0)[ok])
+    np.testing.assert_allclose(np.asarray(res.normals)[ok], n_ref[ok], atol=2e-5)
+    np.testing.assert_allclose(np.asarray(res.albedo)[ok], rho_ref[ok], rtol=1e-4, atol=1e-6)
+
+
+def test_colour_equals_grey_when_channels_equal():
+    s = face_scene(48, noise=0.01)
+    grey = jaxps.photometric_stereo(s.images, s.lights, mask=s.mask)
+    colour = jaxps.photometric_stereo(jnp.stack([s.images] * 3, axis=-1), s.lights, mask=s.mask)
+    assert colour.albedo.shape == (*s.mask.shape, 3)
+    np.testing.assert_allclose(colour.normals, grey.normals, atol=1e-6)
+    for c in range(3):
+        np.testing.assert_allclose(colour.albedo[..., c], grey.albedo, rtol=1e-5, atol=1e-7)
+    np.testing.assert_array_equal(colour.status, grey.status)
+
+
+def test_colour_albedo_scales_per_channel():
+    s = face_scene(48)
+    tint = jnp.array([1.0, 0.6, 0.3], jnp.float32)
+    res = jaxps.photometric_stereo(s.images[..., None] * tint[None, None, None], s.lights,
+                                   mask=s.mask)
+    ok = np.asarray(res.status == 0)
+    for c in range(3):
+        np.testing.assert_allclose(np.asarray(res.albedo[..., c])[ok],
+                                   float(tint[c]) * np.asarray(s.albedo)[ok], rtol=1e-4)
+
+
+def test_status_codes_and_finite_outputs():
+    s = face_scene(32)
+    images = np.array(s.images)
+    mask = np.ones(s.mask.shape, bool)
+    mask[0, 0] = False
+    pix = {"dark": (16, 5), "sat": (16, 10), "few": (16, 12), "nan": (16, 14), "inf": (16, 15)}
+    images[:, 16, 5] = 0.0
+    images[:3, 16, 10] = 1.0  # 5 lights, 3 saturated -> 2 usable
+    images[:3, 16, 12] = 0.0  # 3 shadowed
+    images[:3, 16, 14] = np.nan
+    images[:, 16, 15] = np.inf
+    res = jaxps.photometric_stereo(images, s.lights, mask=mask, shadow_threshold=0.01)
+    st = np.asarray(res.status)
+    assert st[0, 0] == Status.MASKED
+    assert st[pix["dark"]] == Status.DARK
+    assert st[pix["sat"]] == Status.SATURATED
+    assert st[pix["few"]] == Status.TOO_FEW_LIGHTS
+    assert st[pix["nan"]] == Status.INVALID
+    assert st[pix["inf"]] == Status.INVALID
+    for r, c in [(0, 0), *pix.values()]:
+        np.testing.assert_array_equal(res.normals[r, c], [0, 0, 1])
+        assert res.albedo[r, c] == 0
+    for field in (res.normals, res.albedo, res.residual):
+        assert np.all(np.isfinite(np.asarray(field)))
+
+
+def test_degenerate_subset_of_lights():
+    # Two of the three non-coplanar lights land in a shadow: the rest are coplanar.
+    lights = jaxps.lights_from_angles([0, 30, -30, 0], [0, 0, 0, 30])
+    s = face_scene(24, lights=lights)
+    images = np.array(s.images)
+    images[3] = 0.0  # the only light out of the y=0 plane is shadowed everywhere
+    res = jaxps.photometric_stereo(images, lights, mask=s.mask, shadow_threshold=1e-4)
+    st = np.asarray(res.status)[np.asarray(s.mask)]
+    assert np.all(st == Status.DEGENERATE)
+    assert np.all(np.isfinite(np.asarray(res.normals)))
+
+
+def test_backfacing_gets_status():
+    # Lights all on one side; b = rho n with n_z < 0 still gives positive intensities.
+    lights = jaxps.lights_from_angles([30, 40, 50], [0, 10, -10])
+    b = np.array([-1.0, 0.0, -0.2])
+    images = (lights @ b).astype(np.float32)[:, None, None] * np.ones((1, 1, 2), np.float32)
+    assert np.all(images > 0)
+    res = jaxps.photometric_stereo(images, lights)
+    np.testing.assert_array_equal(res.status, Status.BACKFACING)
+    np.testing.assert_array_equal(res.normals[0, 0], [0, 0, 1])
+
+
+def test_float64_in_float64_out():
+    with jax.enable_x64(True):
+        s = face_scene(24)
+        images = np.asarray(s.images, np.float64)
+        res = jaxps.photometric_stereo(images, np.asarray(s.lights, np.float64), mask=s.mask)
+        assert res.normals.dtype == jnp.float64 and res.albedo.dtype == jnp.float64
+        assert res.residual.dtype == jnp.float64
+
+
+def test_per_pixel_lights_match_shared():
+    s = face_scene(32)
+    k, h, w = s.images.shape
+    field = jnp.broadcast_to(s.lights[:, None, None, :], (k, h, w, 3))
+    shared = jaxps.photometric_stereo(s.images, s.lights, mask=s.mask)
+    per_pixel = jaxps.photometric_stereo(s.images, field, mask=s.mask)
+    np.testing.assert_allclose(per_pixel.normals, shared.normals, atol=1e-5)
+    np.testing.assert_array_equal(per_pixel.status, shared.status)
+
+
+def test_works_under_jit_and_vmap_over_captures():
+    s = face_scene(24)
+    batch = jnp.stack([s.images, 0.5 * s.images])
+
+    @jax.jit
+    def solve(images, lights):
+        return jaxps.photometric_stereo(images, lights).normals
+
+    out = jax.vmap(solve, in_axes=(0, None))(batch, s.lights)
+    single = jaxps.photometric_stereo(s.images, s.lights).normals
+    np.testing.assert_allclose(out[0], single, atol=1e-6)
+    np.testing.assert_allclose(out[1], single, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(images=np.zeros((5, 4, 4), np.uint8)), "floating point"),
+        (dict(images=np.zeros((5, 4), np.float32)), r"\(K, H, W\)"),
+        (dict(lights=np.eye(3, dtype=np.float32)), "K=5 frames but lights have 3"),
+        (dict(images=np.zeros((2, 4, 4), np.float32),
+              lights=np.eye(3, dtype=np.float32)[:2]), "at least 3"),
+        (dict(lights=np.zeros((5, 4, 4, 2), np.float32)), r"\(K, 3\) or \(K, H, W, 3\)"),
+        (dict(mask=np.ones((3, 4), bool)), "mask must have shape"),
+        (dict(sample_mask=np.ones((5, 4, 3), bool)), "sample_mask must have shape"),
+        (dict(method="nope"), "method must be one of"),
+        (dict(saturation=float("nan")), "saturation must be finite"),
+    ],
+)
+def test_bad_input(kwargs, match):
+    args = dict(images=np.full((5, 4, 4), 0.5, np.float32), lights=jaxps.synthetic.scanner_lights())
+    args.update(kwargs)
+    images, lights = args.pop("images"), args.pop("lights")
+    with pytest.raises(ValueError, match=match):
+        jaxps.photometric_stereo(images, lights, **args)
+
+
+def test_coplanar_lights_rejected_with_condition_number():
+    lights = jaxps.lights_from_angles([0, 20, -20, 40], [0, 0, 0, 0])
+    with pytest.raises(ValueError, match="condition number"):
+        jaxps.photometric_stereo(np.ones((4, 3, 3), np.float32), lights)
