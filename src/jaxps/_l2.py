@@ -10,6 +10,7 @@ shared, $b = L^+ i$ with the pseudo-inverse $L^+$ computed once for the whole im
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import jax
@@ -45,65 +46,90 @@ class PSResult(NamedTuple):
     info: dict | None = None
 
 
-def solve3(a: Array, r: Array) -> tuple[Array, Array]:
-    """Solve the symmetric 3x3 system `a x = r` (r may be `(3,)` or `(3, C)`) by cofactors.
+def solve3(a, r) -> tuple[Array, Array]:
+    """Solve the symmetric 3x3 system `a x = r` by cofactors.
 
-    Returns the solution and det(a) / (trace(a)/3)^3, a scale-free conditioning measure.
-    Written out so that a vmapped batch stays elementwise and fuses (no batched LAPACK call).
+    `a` is indexable as `a[p][q]` (a `(3, 3)` array or nested lists of per-pixel scalars) and
+    `r` as `r[p]` (a `(3, ...)` array or a list of three arrays). Returns the `(3, ...)`
+    solution and det(a) / (trace(a)/3)^3, a scale-free conditioning measure (0 when singular).
+
+    Written with scalar products only: under `vmap`, a batched matrix product or a reduction
+    over a small axis becomes a slow batched op on CPU, while these fuse into one elementwise
+    loop over pixels.
     """
-    c00 = a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1]
-    c01 = a[1, 2] * a[2, 0] - a[1, 0] * a[2, 2]
-    c02 = a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]
-    c11 = a[0, 0] * a[2, 2] - a[0, 2] * a[2, 0]
-    c12 = a[0, 1] * a[2, 0] - a[0, 0] * a[2, 1]
-    c22 = a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0]
-    det = a[0, 0] * c00 + a[0, 1] * c01 + a[0, 2] * c02
-    cof = jnp.stack([jnp.stack([c00, c01, c02]), jnp.stack([c01, c11, c12]),
-                     jnp.stack([c02, c12, c22])])
-    scale = jnp.trace(a) / 3
-    rel_det = det / jnp.maximum(scale**3, jnp.finfo(a.dtype).tiny)
-    safe_det = jnp.where(jnp.abs(det) > 0, det, 1)
-    return cof @ r / safe_det, rel_det
+    c00 = a[1][1] * a[2][2] - a[1][2] * a[2][1]
+    c01 = a[1][2] * a[2][0] - a[1][0] * a[2][2]
+    c02 = a[1][0] * a[2][1] - a[1][1] * a[2][0]
+    c11 = a[0][0] * a[2][2] - a[0][2] * a[2][0]
+    c12 = a[0][1] * a[2][0] - a[0][0] * a[2][1]
+    c22 = a[0][0] * a[1][1] - a[0][1] * a[1][0]
+    det = a[0][0] * c00 + a[0][1] * c01 + a[0][2] * c02
+    scale = (a[0][0] + a[1][1] + a[2][2]) / 3
+    rel_det = det / jnp.maximum(scale**3, jnp.finfo(det.dtype).tiny)
+    inv_det = 1 / jnp.where(det != 0, det, 1)
+    x = [
+        (c00 * r[0] + c01 * r[1] + c02 * r[2]) * inv_det,
+        (c01 * r[0] + c11 * r[1] + c12 * r[2]) * inv_det,
+        (c02 * r[0] + c12 * r[1] + c22 * r[2]) * inv_det,
+    ]
+    return jnp.stack(x), rel_det
 
 
-def _pixel_l2(i, usable, lights, pinv, all_shared, thresholds):
+def _pixel_l2(i, usable, lights, pinv, thresholds, weighted):
     """Solve one pixel. `i` is `(K, C)` (C=1 for grey), `usable` `(K,)` bool, `lights` `(K, 3)`.
 
-    `pinv` is the shared `(3, K)` pseudo-inverse (used when every sample is usable and
-    `all_shared`), and `thresholds` = (dark, saturation, shadow) as traced scalars.
+    `pinv` is the shared `(3, K)` pseudo-inverse (None for per-pixel lights), used when every
+    sample is usable; with
+    `weighted=False` (static) it is used for every pixel and the per-pixel normal equations are
+    skipped (the caller checks that no pixel needs them). `thresholds` = (dark, saturation,
+    shadow) as traced scalars. Sums over
+    the K samples and 3 axes are unrolled in Python (K is static and small) so that, once
+    vmapped, every operation is elementwise over pixels (see `solve3`).
     """
     dark, saturation, shadow = thresholds
-    finite = jnp.all(jnp.isfinite(i), axis=-1)
-    i = jnp.where(finite[:, None], i, 0)
-    grey = jnp.mean(i, axis=-1)
-    saturated = jnp.any(i >= saturation, axis=-1)
-    unsat = finite & ~saturated & usable
-    used = unsat & (grey >= shadow)
-    w = used.astype(i.dtype)
+    dtype = i.dtype
+    ks = range(i.shape[0])
+    finite = [jnp.all(jnp.isfinite(i[k])) for k in ks]
+    ik = [jnp.where(finite[k], i[k], 0) for k in ks]  # (C,) each
+    grey = [jnp.mean(x) for x in ik]
+    unsat = [finite[k] & usable[k] & ~jnp.any(ik[k] >= saturation) for k in ks]
+    used = [unsat[k] & (grey[k] >= shadow) for k in ks]
+    w = [u.astype(dtype) for u in used]
 
-    a = jnp.einsum("k,ki,kj->ij", w, lights, lights)
-    r = lights.T @ (w[:, None] * i)  # (3, C)
-    b_weighted, rel_det = solve3(a, r)
-    every = jnp.all(used) & all_shared
-    b = jnp.where(every, pinv @ i, b_weighted)  # (3, C)
+    # Normal equations A b = r with A = L^T W L, r = L^T W i; or b = L^+ i when all are used.
+    lw = [[w[k] * lights[k, p] for p in range(3)] for k in ks]
+    a = [[sum(lw[k][p] * lights[k, q] for k in ks) for q in range(3)] for p in range(3)]
+    r = [sum(lw[k][p] * ik[k] for k in ks) for p in range(3)]  # (C,) each
+    if pinv is not None:
+        b_shared = jnp.stack([sum(pinv[p, k] * ik[k] for k in ks) for p in range(3)])
+    if not weighted:
+        b, rel_det = b_shared, jnp.ones((), dtype)
+    else:
+        b, rel_det = solve3(a, r)  # (3, C)
+        if pinv is not None:
+            b = jnp.where(functools.reduce(jnp.logical_and, used), b_shared, b)
 
-    b_grey = jnp.mean(b, axis=-1)
-    rho_grey = jnp.linalg.norm(b_grey)
-    n = b_grey / jnp.where(rho_grey > 0, rho_grey, 1)
-    # Shared normal, per-channel albedo: rho_c = n.(L^T W i_c) / n.(L^T W L) n (equals |b| in grey).
-    rho = (n @ r) / jnp.maximum(n @ a @ n, jnp.finfo(i.dtype).tiny)
+    bg = [jnp.mean(b[p]) for p in range(3)]
+    rho_grey = jnp.sqrt(bg[0] ** 2 + bg[1] ** 2 + bg[2] ** 2)
+    inv_rho = 1 / jnp.where(rho_grey > 0, rho_grey, 1)
+    n = [x * inv_rho for x in bg]
+    # Shared normal, per-channel albedo: rho_c = n.(L^T W i_c) / n.(L^T W L) n (= |b| in grey).
+    nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
+    rho = sum(n[p] * r[p] for p in range(3)) / jnp.maximum(nan, jnp.finfo(dtype).tiny)
 
-    shade = lights @ n  # (K,)
-    res = jnp.mean(i - rho[None, :] * shade[:, None], axis=-1)
-    n_used = jnp.sum(used)
-    residual = jnp.sqrt(jnp.sum(w * res**2) / jnp.maximum(n_used, 1).astype(i.dtype))
+    shade = [lights[k, 0] * n[0] + lights[k, 1] * n[1] + lights[k, 2] * n[2] for k in ks]
+    n_used = sum(u.astype(jnp.int32) for u in used)
+    sq = sum(w[k] * jnp.mean(ik[k] - rho * shade[k]) ** 2 for k in ks)
+    residual = jnp.sqrt(sq / jnp.maximum(n_used, 1).astype(dtype))
 
-    n_finite = jnp.sum(finite)
+    n_finite = sum(f.astype(jnp.int32) for f in finite)
+    brightest = functools.reduce(jnp.maximum, [jnp.where(finite[k], grey[k], -jnp.inf)
+                                               for k in ks])
     status = jnp.select(
         [
             n_finite < 3,
-            jnp.max(jnp.where(finite, grey, -jnp.inf)) <= dark,
-            jnp.sum(unsat) < 3,
+            brightest <= dark,
+            sum(u.astype(jnp.int32) for u in unsat) < 3,
             n_used < 3,
             rel_det < _REL_DET_MIN,
             ~(rho_grey > 0),
@@ -113,7 +139,7 @@ def _pixel_l2(i, usable, lights, pinv, all_shared, thresholds):
          Status.DEGENERATE, Status.DARK, Status.BACKFACING],
         Status.OK,
     )
-    return n, rho, status, n_used, residual
+    return jnp.stack(n), rho, status, n_used, residual
 
 
 @jax.jit
@@ -129,10 +155,22 @@ def ps_l2(images, lights, mask, sample_mask, thresholds):
     else:
         lights = lights.reshape(k, h * w, 3)
         lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
-        pinv = jnp.zeros((3, k), images.dtype)
+        pinv = None
         light_axis = 1
-    kernel = jax.vmap(_pixel_l2, in_axes=(1, 1, light_axis, None, None, None))
-    n, rho, status, n_used, residual = kernel(flat, usable, lights, pinv, shared, thresholds)
+    def solve(weighted):
+        kernel = jax.vmap(functools.partial(_pixel_l2, weighted=weighted),
+                          in_axes=(1, 1, light_axis, None, None))
+        return lambda: kernel(flat, usable, lights, pinv, thresholds)
+
+    if shared:
+        # Most captures have no pixel that drops a sample: then skip the per-pixel solves.
+        dark, saturation, shadow = thresholds
+        grey = jnp.mean(flat, axis=-1)
+        clean = (jnp.all(usable) & jnp.all(jnp.isfinite(flat)) & jnp.all(flat < saturation)
+                 & jnp.all(grey >= shadow))
+        n, rho, status, n_used, residual = jax.lax.cond(clean, solve(False), solve(True))
+    else:
+        n, rho, status, n_used, residual = solve(True)()
 
     keep = mask.reshape(-1) & (status == Status.OK)
     status = jnp.where(mask.reshape(-1), status, Status.MASKED).astype(jnp.int32)

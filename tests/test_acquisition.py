@@ -1,0 +1,149 @@
+import cv2
+import numpy as np
+import pytest
+
+import jaxps
+from jaxps import acquisition as acq
+
+
+def test_16bit_png_keeps_16_bits(tmp_path):
+    ramp = (np.arange(64 * 64, dtype=np.uint32) * 16).reshape(64, 64).astype(np.uint16)
+    cv2.imwrite(str(tmp_path / "f.png"), ramp)
+    img = acq.read_image(tmp_path / "f.png")
+    assert img.dtype == np.float32
+    np.testing.assert_array_equal(np.round(img * 65535).astype(np.uint16), ramp)
+    assert len(np.unique(img)) == 4096  # more levels than 8 bits could hold
+
+
+def test_16bit_colour_png_rgb_order(tmp_path):
+    rgb = np.zeros((4, 5, 3), np.uint16)
+    rgb[..., 0], rgb[..., 1], rgb[..., 2] = 60000, 30000, 1000
+    cv2.imwrite(str(tmp_path / "c.png"), rgb[..., ::-1])
+    img = acq.read_image(tmp_path / "c.png")
+    np.testing.assert_allclose(img[0, 0], np.array([60000, 30000, 1000]) / 65535, rtol=1e-6)
+
+
+def test_shared_16bit_normal_map(data):
+    n = acq.read_image(data / "diligent_gt" / "bear" / "normal_map.png")
+    assert n.shape[-1] == 3
+    assert len(np.unique(n[..., 2])) > 256
+    m = acq.read_mask(data / "diligent_gt" / "bear" / "mask.png", n.shape[:2])
+    v = n[m] * 2 - 1
+    np.testing.assert_allclose(np.linalg.norm(v, axis=1), 1, atol=2e-3)
+    assert np.median(v[:, 2]) > 0.5  # z toward the viewer
+
+
+def test_8bit_srgb_png_decoded_tiff_and_pgm_linear(tmp_path):
+    v = np.full((3, 3), 128, np.uint8)
+    for name in ("g.png", "g.pgm", "g.tif"):
+        cv2.imwrite(str(tmp_path / name), v)
+    srgb = ((128 / 255 + 0.055) / 1.055) ** 2.4
+    assert acq.read_image(tmp_path / "g.png")[0, 0] == pytest.approx(srgb, rel=1e-5)
+    assert acq.read_image(tmp_path / "g.pgm")[0, 0] == pytest.approx(128 / 255, rel=1e-6)
+    assert acq.read_image(tmp_path / "g.tif")[0, 0] == pytest.approx(128 / 255, rel=1e-6)
+    assert acq.read_image(tmp_path / "g.png", linearize="none")[0, 0] == pytest.approx(128 / 255)
+    t16 = np.full((2, 2), 40000, np.uint16)
+    cv2.imwrite(str(tmp_path / "t.tif"), t16)
+    assert acq.read_image(tmp_path / "t.tif")[0, 0] == pytest.approx(40000 / 65535, rel=1e-6)
+
+
+def test_read_errors_name_the_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="missing.png"):
+        acq.read_image(tmp_path / "missing.png")
+    (tmp_path / "broken.png").write_bytes(b"not an image at all")
+    with pytest.raises(ValueError, match="broken.png"):
+        acq.read_image(tmp_path / "broken.png")
+    with pytest.raises(ValueError, match="linearize"):
+        acq.read_image(tmp_path / "broken.png", linearize="gamma")
+
+
+def test_list_frames_natural_order_and_skips(tmp_path):
+    for name in ("x.10.png", "x.2.png", "x.mask.png", "x_Ambient.pgm", "notes.txt", "x.1.png"):
+        (tmp_path / name).write_bytes(b"")
+    names = [p.rsplit("/", 1)[-1] for p in acq.list_frames(tmp_path)]
+    assert names == ["x.1.png", "x.2.png", "x.10.png"]
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(FileNotFoundError, match="no frame files"):
+        acq.list_frames(empty)
+    with pytest.raises(FileNotFoundError, match="not found"):
+        acq.list_frames(tmp_path / "nope")
+
+
+def test_mismatched_frame_sizes_name_the_file(tmp_path):
+    cv2.imwrite(str(tmp_path / "a.pgm"), np.zeros((4, 4), np.uint8))
+    cv2.imwrite(str(tmp_path / "b.pgm"), np.zeros((4, 5), np.uint8))
+    with pytest.raises(ValueError, match=r"b\.pgm has shape \(4, 5\)"):
+        acq.load_stack([tmp_path / "a.pgm", tmp_path / "b.pgm"])
+
+
+def test_ambient_subtraction_clips_and_saturation_from_raw(tmp_path):
+    frames = [np.full((3, 3), v, np.uint8) for v in (10, 100, 255)]
+    paths = []
+    for k, f in enumerate(frames):
+        paths.append(tmp_path / f"f{k}.pgm")
+        cv2.imwrite(str(paths[-1]), f)
+    cv2.imwrite(str(tmp_path / "amb.pgm"), np.full((3, 3), 50, np.uint8))
+    cap = acq.load_capture(paths, lights=np.eye(3), ambient=tmp_path / "amb.pgm")
+    np.testing.assert_allclose(cap.images[:, 0, 0], [0, 50 / 255, 205 / 255], rtol=1e-6)
+    np.testing.assert_array_equal(cap.saturated[:, 0, 0], [False, False, True])
+
+
+def test_equalize_mean():
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0.2, 0.8, (8, 8)).astype(np.float32)
+    stack = np.stack([base * g for g in (0.8, 1.0, 1.2)])
+    eq, gains = acq.equalize_mean(stack)
+    np.testing.assert_allclose(gains, [1 / 0.8, 1.0, 1 / 1.2], rtol=1e-5)
+    np.testing.assert_allclose(eq[0], eq[2], rtol=1e-5)
+    with pytest.raises(ValueError, match="zero mean"):
+        acq.equalize_mean(np.stack([base, 0 * base, base]))
+
+
+def test_yale_capture_with_names_face_and_mask(data):
+    folder = data / "yaleb" / "yaleB01"
+    names = ["A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20"]
+    paths = [folder / f"yaleB01_P00{n}.pgm" for n in names]
+    cap = acq.load_capture(paths, yale_names=True, ambient=folder / "yaleB01_P00_Ambient.pgm",
+                           crop_face=True, mask="auto")
+    np.testing.assert_allclose(cap.lights, jaxps.lights_from_angles([0, 25, -25, 0, 0],
+                                                                    [0, 0, 0, 20, -20]))
+    t, l, h, w = cap.crop
+    # The cropped Yale B frames are nearly all face: the box must cover most of the frame.
+    assert h * w > 0.6 * 192 * 168 and cap.images.shape[1:] == (h, w)
+    assert 0.6 < cap.mask.mean() <= 1.0
+
+
+def test_face_detection_on_padded_tight_crop(data):
+    img = acq.read_image(data / "yaleb" / "yaleB02" / "yaleB02_P00A+000E+00.pgm")
+    box = acq.detect_face(img)
+    assert box is not None
+    t, l, h, w = box
+    # The box contains the image centre (the nose), not a cheek off to one side.
+    assert t < 96 < t + h and l < 84 < l + w
+    assert acq.detect_face(np.zeros((100, 100), np.float32)) is None
+
+
+def test_psm_capture_colour_linear_with_mask(data):
+    folder = data / "psm" / "cat"
+    cap = acq.load_capture(folder, lights=data / "psm" / "lights.txt",
+                           mask=folder / "cat.mask.png")
+    assert cap.images.shape == (12, 340, 512, 3)
+    assert cap.names[:3] == ("cat.0.png", "cat.1.png", "cat.2.png")
+    assert cap.names[-1] == "cat.11.png"
+    raw = cv2.imread(str(folder / "cat.0.png"))[..., ::-1] / 255
+    np.testing.assert_allclose(cap.images[0], np.where(raw <= 0.04045, raw / 12.92,
+                                                       ((raw + 0.055) / 1.055) ** 2.4), atol=1e-5)
+
+
+def test_capture_errors(tmp_path, data):
+    folder = data / "yaleb" / "yaleB01"
+    with pytest.raises(ValueError, match="Yale B light"):
+        acq.load_capture([folder / "yaleB01_P00_Ambient.pgm"] * 3, yale_names=True)
+    with pytest.raises(ValueError, match="3 frames but 12 lights"):
+        acq.load_capture(sorted(folder.glob("*A+0*.pgm"))[:3], lights=data / "psm" / "lights.txt")
+    cv2.imwrite(str(tmp_path / "m.png"), np.ones((5, 5), np.uint8))
+    with pytest.raises(ValueError, match="m.png has shape"):
+        acq.load_capture(sorted(folder.glob("*A+0*.pgm"))[:3], mask=tmp_path / "m.png")
+    with pytest.raises(ValueError, match="empty list"):
+        acq.load_capture([])

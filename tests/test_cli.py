@@ -1,0 +1,124 @@
+"""End-to-end: the `jaxps` command line on the shared real captures and the built-in demo."""
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import jaxps
+from jaxps import acquisition as acq
+from jaxps._outputs import read_normal_map
+from jaxps.cli import main
+
+FIVE = ["A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20"]
+
+
+def lstsq_normals(images, lights, mask):
+    """numpy reference: all masked pixels as right-hand sides of one lstsq."""
+    b = np.linalg.lstsq(np.asarray(lights, np.float64), images[:, mask].astype(np.float64),
+                        rcond=None)[0].T
+    n = np.zeros(mask.shape + (3,))
+    n[mask] = b / np.maximum(np.linalg.norm(b, axis=1, keepdims=True), 1e-12)
+    return n
+
+
+def test_help_for_every_subcommand(capsys):
+    for argv in (["--help"], ["reconstruct", "--help"], ["demo", "--help"]):
+        with pytest.raises(SystemExit) as exit_:
+            main(argv)
+        assert exit_.value.code == 0
+    out = capsys.readouterr().out
+    assert "reconstruct" in out and "demo" in out and "--yale-names" in out
+
+
+def test_python_dash_m_entry_point():
+    out = subprocess.run([sys.executable, "-m", "jaxps", "--help"], capture_output=True,
+                         text=True, check=True).stdout
+    assert "reconstruct" in out
+
+
+def test_demo_reports_small_errors(tmp_path, capsys):
+    assert main(["demo", "--out", str(tmp_path), "--size", "96", "--noise", "0"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    err = summary["errors_vs_truth"]
+    # 16-bit frames, no noise: quantisation only.
+    assert err["angular_median_deg"] < 0.05
+    assert err["height_rms_px"] < 0.05 * err["height_range_px"]
+    for name in ("normals.png", "albedo.png", "height.npy", "mesh.ply", "preview.png"):
+        assert (tmp_path / name).stat().st_size > 0
+    assert "median angular error" in capsys.readouterr().out
+
+
+def test_reconstruct_yale_five_lights_against_many_light_reference(tmp_path, data):
+    folder = data / "yaleb" / "yaleB01"
+    frames = [str(folder / f"yaleB01_P00{n}.pgm") for n in FIVE]
+    ambient = str(folder / "yaleB01_P00_Ambient.pgm")
+    assert main(["reconstruct", *frames, "--yale-names", "--ambient", ambient,
+                 "--out", str(tmp_path)]) == 0
+    normals = read_normal_map(tmp_path / "normals.png")
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["size"] == {"frames": 5, "height": 192, "width": 168, "channels": 1}
+
+    # Reference: numpy lstsq over every light within 50 degrees of the view axis.
+    paths = [p for p in sorted(folder.glob("yaleB01_P00A*.pgm"))
+             if np.degrees(np.arccos(jaxps.lights_from_angles(*jaxps.parse_yale_name(p))[0, 2]))
+             <= 50]
+    cap = acq.load_capture(paths, yale_names=True, ambient=ambient)
+    assert len(paths) == 29
+    face = acq.mask_from_intensity(cap.images)
+    ref = lstsq_normals(cap.images, cap.lights, face)
+    ok = face & (np.load(tmp_path / "status.npy") == 0)
+    err = np.asarray(jaxps.angular_error(normals, ref))[ok]
+    # ANCHORS.md: 8.8 deg median for this light set, mostly per-frame flash intensity.
+    assert 5.0 < np.median(err) < 12.0
+
+    # jaxps on the same 29 frames equals the numpy reference (16-bit PNG not involved).
+    res = jaxps.photometric_stereo(cap.images, cap.lights, mask=face, dark_threshold=0.0)
+    same = np.asarray(res.status) == 0
+    assert same[face].mean() > 0.98
+    assert np.percentile(np.asarray(jaxps.angular_error(res.normals, ref))[same], 99) < 0.01
+
+
+def test_reconstruct_psm_cat_colour_with_mask(tmp_path, data):
+    folder = data / "psm" / "cat"
+    assert main(["reconstruct", str(folder), "--lights", str(data / "psm" / "lights.txt"),
+                 "--mask", str(folder / "cat.mask.png"), "--out", str(tmp_path)]) == 0
+    normals = read_normal_map(tmp_path / "normals.png")
+    cap = acq.load_capture(folder, lights=data / "psm" / "lights.txt",
+                           mask=folder / "cat.mask.png")
+    ref = lstsq_normals(cap.images.mean(axis=-1), cap.lights, cap.mask)
+    ok = (np.load(tmp_path / "status.npy") == 0) & ~cap.saturated.any(axis=0)
+    assert ok.sum() > 0.95 * cap.mask.sum()
+    err = np.asarray(jaxps.angular_error(normals, ref))[ok]
+    assert np.median(err) < 0.01 and np.percentile(err, 99) < 0.05  # 16-bit PNG quantisation
+    height = np.load(tmp_path / "height.npy")
+    assert height.shape == (340, 512) and np.all(np.isfinite(height))
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["size"]["channels"] == 3 and summary["status_counts"]["OK"] == int(
+        (np.load(tmp_path / "status.npy") == 0).sum())
+
+
+def test_mesh_is_valid_ply(tmp_path):
+    from jaxps._outputs import write_ply
+
+    z = np.arange(12, dtype=np.float32).reshape(3, 4)
+    mask = np.ones((3, 4), bool)
+    mask[0, 0] = False
+    faces = write_ply(tmp_path / "m.ply", z, mask)
+    data = (tmp_path / "m.ply").read_bytes()
+    header, body = data.split(b"end_header\n")
+    assert b"element vertex 11" in header and f"element face {faces}".encode() in header
+    assert faces == 2 * 5  # six 2x2 blocks, one of them touches the masked pixel
+    assert len(body) == 11 * 12 + faces * 13
+
+
+def test_errors_are_reported_not_raised(tmp_path, capsys, data):
+    assert main(["reconstruct", str(tmp_path / "nothing"), "--lights",
+                 str(data / "psm" / "lights.txt"), "--out", str(tmp_path / "o")]) == 2
+    assert "not found" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert main(["reconstruct", str(empty), "--yale-names", "--out", str(tmp_path / "o")]) == 2
+    assert "no frame files" in capsys.readouterr().err
