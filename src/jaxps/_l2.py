@@ -97,9 +97,12 @@ def _pixel_l2(i, usable, lights, pinv, thresholds, weighted):
     w = [u.astype(dtype) for u in used]
 
     # Normal equations A b = r with A = L^T W L, r = L^T W i; or b = L^+ i when all are used.
-    lw = [[w[k] * lights[k, p] for p in range(3)] for k in ks]
-    a = [[sum(lw[k][p] * lights[k, q] for k in ks) for q in range(3)] for p in range(3)]
-    r = [sum(lw[k][p] * ik[k] for k in ks) for p in range(3)]  # (C,) each
+    # Without per-pixel weights A = L^T L is built from the unbatched lights: computed once.
+    wl = [[w[k] * lights[k, p] for p in range(3)] for k in ks] if weighted else lights
+    a = [[sum(wl[k][p] * lights[k, q] for k in ks) for q in range(3)] for p in range(3)]
+    grey_only = i.shape[-1] == 1
+    r = None if grey_only and not weighted else [sum(wl[k][p] * ik[k] for k in ks)
+                                                 for p in range(3)]  # (C,) each
     if pinv is not None:
         b_shared = jnp.stack([sum(pinv[p, k] * ik[k] for k in ks) for p in range(3)])
     if not weighted:
@@ -113,9 +116,12 @@ def _pixel_l2(i, usable, lights, pinv, thresholds, weighted):
     rho_grey = jnp.sqrt(bg[0] ** 2 + bg[1] ** 2 + bg[2] ** 2)
     inv_rho = 1 / jnp.where(rho_grey > 0, rho_grey, 1)
     n = [x * inv_rho for x in bg]
-    # Shared normal, per-channel albedo: rho_c = n.(L^T W i_c) / n.(L^T W L) n (= |b| in grey).
-    nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
-    rho = sum(n[p] * r[p] for p in range(3)) / jnp.maximum(nan, jnp.finfo(dtype).tiny)
+    if grey_only:
+        rho = rho_grey[None]
+    else:
+        # Shared normal, per-channel albedo: rho_c = n.(L^T W i_c) / n.(L^T W L) n.
+        nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
+        rho = sum(n[p] * r[p] for p in range(3)) / jnp.maximum(nan, jnp.finfo(dtype).tiny)
 
     shade = [lights[k, 0] * n[0] + lights[k, 1] * n[1] + lights[k, 2] * n[2] for k in ks]
     n_used = sum(u.astype(jnp.int32) for u in used)
