@@ -5,9 +5,33 @@ from __future__ import annotations
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
+from ._error_maps import ScanComparison, compare_to_scan, l2_error, plot_error_maps
+from ._icp import (
+    ICP_METHODS,
+    ICPResult,
+    estimate_normals,
+    icp,
+    points_from_depth,
+    points_from_height,
+    transform_points,
+)
 from ._render import angular_error
 
-__all__ = ["angular_error", "angular_stats"]
+__all__ = [
+    "ICP_METHODS",
+    "ICPResult",
+    "ScanComparison",
+    "angular_error",
+    "angular_stats",
+    "compare_to_scan",
+    "estimate_normals",
+    "icp",
+    "l2_error",
+    "plot_error_maps",
+    "points_from_depth",
+    "points_from_height",
+    "transform_points",
+]
 
 
 def angular_stats(
