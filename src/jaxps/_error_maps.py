@@ -225,12 +225,11 @@ def plot_error_maps(
         top = vmax.get(name, float(np.percentile(vals, 98)) or 1.0)
         shown = np.ma.masked_array(a, ~sel)[crop]
         if name in signed:
-            cmap = plt.get_cmap("RdBu_r").copy()
+            cmap = plt.get_cmap("RdBu_r").with_extremes(bad="white")
             lo, hi = -top, top
         else:
-            cmap = plt.get_cmap("jet").copy()
+            cmap = plt.get_cmap("jet").with_extremes(bad="white")
             lo, hi = 0.0, top
-        cmap.set_bad("white")
         im = ax.imshow(shown, cmap=cmap, vmin=lo, vmax=hi, interpolation="nearest")
         ax.set_title(name)
         ax.set_axis_off()

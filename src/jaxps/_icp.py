@@ -269,7 +269,8 @@ def icp(
     Each step pairs every aligned source point with its nearest target point (`cKDTree`),
     keeps the `trim` fraction of closest pairs that are also within `max_distance`, and
     solves for the similarity increment (module docstring). It stops when the RMS pair
-    distance changes by less than `tol` (relative) between steps, or after `max_steps`.
+    distance changes by less than `tol` (relative) between steps or reaches float32 round-off of
+    the target's size (an exact fit), or after `max_steps` (then `converged` is False).
 
     ICP is local: it converges to the right answer from a misalignment of a few degrees and a
     fraction of the object's size. `init="centroid"` first moves the source's centroid onto
@@ -345,6 +346,9 @@ def icp(
         rms = float(np.sqrt(np.mean(dist[keep] ** 2))) if keep.sum() >= 3 else float("inf")
         return moved, dist, idx, keep, rms
 
+    # An RMS at float32 round-off of the target's size is an exact fit: nothing left to gain.
+    spread = float(np.sqrt(np.mean(np.sum((tgt - tgt.mean(axis=0)) ** 2, axis=-1))))
+    floor = 16 * float(np.finfo(np.float32).eps) * spread
     prev = np.inf
     converged = False
     steps = 0
@@ -352,7 +356,7 @@ def icp(
         moved, dist, idx, keep, rms = pairs(s, rot, t)
         if not np.isfinite(rms):
             break
-        if abs(prev - rms) <= tol * max(rms, np.finfo(np.float32).eps):
+        if rms <= floor or abs(prev - rms) <= tol * rms:
             converged = True
             break
         if steps == int(max_steps):
