@@ -1,0 +1,65 @@
+"""Helpers shared by the benchmark scripts: timing, data paths, JSON output."""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import platform
+import time
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "benchmarks" / "results"
+
+
+def data_dir() -> pathlib.Path:
+    """The shared real captures: $JAXPS_DATA, else ../shared/data beside the checkout."""
+    return pathlib.Path(os.environ.get("JAXPS_DATA", ROOT.parent / "shared" / "data"))
+
+
+def block(x):
+    """Wait for every JAX array in `x` (a pytree) to be computed."""
+    import jax
+
+    return jax.block_until_ready(x)
+
+
+def timed(fn, *args, repeats: int = 3, **kwargs):
+    """Time `fn`: the first call (compile + run) apart from the best of `repeats` later calls.
+
+    **Returns:** `(result, first_call_s, run_s)`; `compile_s` is about `first_call_s - run_s`.
+    """
+    t0 = time.perf_counter()
+    out = block(fn(*args, **kwargs))
+    first = time.perf_counter() - t0
+    best = float("inf")
+    for _ in range(max(repeats, 1)):
+        t0 = time.perf_counter()
+        out = block(fn(*args, **kwargs))
+        best = min(best, time.perf_counter() - t0)
+    return out, first, best
+
+
+def environment() -> dict:
+    """What the figures were measured on (thread settings included)."""
+    import jax
+    import numpy as np
+
+    return {
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpus": os.cpu_count(),
+        "jax": jax.__version__,
+        "jax_backend": jax.default_backend(),
+        "numpy": np.__version__,
+        "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
+        "XLA_FLAGS": os.environ.get("XLA_FLAGS"),
+        "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+    }
+
+
+def write_json(name: str, payload: dict) -> pathlib.Path:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(payload, indent=2, sort_keys=False, default=float) + "\n")
+    return path
