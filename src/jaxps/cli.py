@@ -1,4 +1,4 @@
-"""The `jaxps` command line: `jaxps reconstruct`, `jaxps demo`."""
+"""The `jaxps` command line: `jaxps reconstruct`, `jaxps demo`, `jaxps report`."""
 
 from __future__ import annotations
 
@@ -34,7 +34,26 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("--integration", default="fc",
                    help="integration method (jaxps.INTEGRATION_METHODS)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--report", action="store_true",
+                   help="also write lambertian_check.png and report.html (see 'jaxps report')")
     p.set_defaults(func=_cmd_reconstruct)
+
+
+def _add_report(sub) -> None:
+    p = sub.add_parser(
+        "report",
+        help="an HTML page for a run folder: maps, error maps against ground truth, timings",
+        description="Write RUN_DIR/report.html (figures in RUN_DIR/report_files/) for a folder "
+        "written by 'jaxps reconstruct': normal map, albedo, shaded height, status, the "
+        "Lambertian check plot if the run has one, timings; with ground truth, error maps.",
+    )
+    p.add_argument("run_dir", help="a folder written by 'jaxps reconstruct'")
+    p.add_argument("--truth-normals", help="ground-truth normal map PNG (16-bit, same grid)")
+    p.add_argument("--truth-depth", help="ground-truth depth (.npz key depth_gt, or .npy)")
+    p.add_argument("--intrinsics", help="K.txt camera matrix for --truth-depth")
+    p.add_argument("--truth-mask", help="mask image for the ground truth")
+    p.add_argument("--out", help="HTML path (default RUN_DIR/report.html)")
+    p.set_defaults(func=_cmd_report)
 
 
 def _add_demo(sub) -> None:
@@ -63,6 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_reconstruct(sub)
     _add_demo(sub)
+    _add_report(sub)
     return parser
 
 
@@ -101,6 +121,7 @@ def reconstruct(
     shadow_threshold: float | None = None,
     method: str = "l2",
     integration: str = "fc",
+    report: bool = False,
 ) -> dict:
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary."""
     import jax
@@ -163,7 +184,15 @@ def reconstruct(
         "timings_s": stages.times,
         "note": "timings include JIT compilation on the first call",
     }
+    if report:
+        from .report import lambertian_check_plot, write_report
+
+        summary["lambertian_check"] = lambertian_check_plot(
+            cap.images, res.normals, res.albedo, cap.lights, mask=ok,
+            path=os.path.join(out, "lambertian_check.png"))
     write_json(os.path.join(out, "summary.json"), summary)
+    if report:
+        write_report(out)
     return summary
 
 
@@ -172,7 +201,7 @@ def _cmd_reconstruct(args) -> int:
         args.frames, args.out, lights=args.lights, yale_names=args.yale_names,
         ambient=args.ambient, mask=args.mask, crop_face=args.crop_face, equalize=args.equalize,
         shadow_threshold=args.shadow_threshold, method=args.method,
-        integration=args.integration,
+        integration=args.integration, report=args.report,
     )
     counts = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
     size = summary["size"]
@@ -236,6 +265,16 @@ def _cmd_demo(args) -> int:
     print("timings: " + ", ".join(f"{k} {v:.3f} s" for k, v in summary["timings_s"].items()))
     print(f"outputs: {args.out}/normals.png albedo.png height.npy mesh.ply preview.png "
           "summary.json")
+    return 0
+
+
+def _cmd_report(args) -> int:
+    from .report import write_report
+
+    path = write_report(args.run_dir, truth_normals=args.truth_normals,
+                        truth_depth=args.truth_depth, intrinsics=args.intrinsics,
+                        truth_mask=args.truth_mask, out=args.out)
+    print(f"wrote {path}")
     return 0
 
 
