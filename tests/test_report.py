@@ -1,0 +1,149 @@
+"""The HTML run report (`jaxps report`) and the Lambertian check plot."""
+
+import html.parser
+import json
+import pathlib
+
+import cv2
+import jax
+import numpy as np
+import pytest
+
+import jaxps
+from jaxps import report
+from jaxps._outputs import write_normal_map
+from jaxps.cli import main
+
+
+class _Images(html.parser.HTMLParser):
+    def __init__(self):
+        super().__init__()
+        self.srcs, self.h2 = [], []
+        self._in_h2 = False
+
+    def handle_starttag(self, tag, attrs):
+        if tag == "img":
+            self.srcs.append(dict(attrs)["src"])
+        self._in_h2 = tag == "h2"
+
+    def handle_data(self, data):
+        if self._in_h2:
+            self.h2.append(data)
+            self._in_h2 = False
+
+
+def _parse(path: pathlib.Path) -> _Images:
+    p = _Images()
+    p.feed(path.read_text())
+    return p
+
+
+def _assert_images_resolve(page: pathlib.Path, srcs):
+    assert srcs
+    for src in srcs:
+        assert not src.startswith(("/", "file:", "http")), src  # relative links only
+        img = cv2.imread(str(page.parent / src), cv2.IMREAD_UNCHANGED)
+        assert img is not None, f"broken image {src}"
+        assert img.shape[0] >= 32 and img.std() > 0, f"empty image {src}"
+
+
+@pytest.fixture(scope="module")
+def synthetic_run(tmp_path_factory):
+    """A `jaxps reconstruct --report` run on a small synthetic capture with known truth."""
+    root = tmp_path_factory.mktemp("run")
+    surface = jaxps.synthetic.face_like(64)
+    lights = jaxps.synthetic.scanner_lights(20.0)
+    scene = jaxps.synthetic.render_scene(surface, lights, noise=0.003, key=jax.random.key(0))
+    frames = []
+    for k, img in enumerate(np.asarray(scene.images)):
+        path = root / f"frame_{k}.png"
+        cv2.imwrite(str(path), np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16))
+        frames.append(str(path))
+    np.savetxt(root / "lights.txt", lights, header=str(len(lights)), comments="")
+    cv2.imwrite(str(root / "mask.png"), np.asarray(scene.mask).astype(np.uint8) * 255)
+    out = root / "out"
+    rc = main(["reconstruct", *frames, "--lights", str(root / "lights.txt"), "--mask",
+               str(root / "mask.png"), "--out", str(out), "--report"])
+    assert rc == 0
+    return root, out, scene
+
+
+def test_reconstruct_report_page_has_every_section(synthetic_run):
+    _, out, _ = synthetic_run
+    page = out / "report.html"
+    parsed = _parse(page)
+    _assert_images_resolve(page, parsed.srcs)
+    assert {"Reconstruction", "Lambertian check", "Timings (s)"} <= set(parsed.h2)
+    assert (out / "lambertian_check.png").is_file()
+    text = page.read_text()
+    assert "photometric stereo" in text  # a timing row from summary.json
+
+
+def test_lambertian_check_is_near_zero_on_lambertian_scene(synthetic_run):
+    _, out, scene = synthetic_run
+    check = json.loads((out / "summary.json").read_text())["lambertian_check"]
+    # Rendered with Lambert's law and noise 0.003 on albedo ~0.65: I/rho scatter ~0.005.
+    assert check["rms_60"] < 0.02 and check["rms_all"] < 0.02
+    assert check["samples"] > 0.9 * 5 * int(np.asarray(scene.mask).sum())
+    # A specular-looking boost must show up as a larger RMS.
+    res = jaxps.photometric_stereo(scene.images, scene.lights, mask=scene.mask)
+    shiny = np.asarray(scene.images) * 1.3
+    worse = report.lambertian_check_plot(shiny, res.normals, res.albedo, scene.lights,
+                                         mask=scene.mask)
+    assert worse["rms_60"] > 5 * check["rms_60"]
+
+
+def test_report_with_ground_truth_maps_and_numbers(synthetic_run, tmp_path):
+    root, out, scene = synthetic_run
+    truth = root / "truth_normals.png"
+    write_normal_map(truth, np.asarray(scene.normals))
+    # A near-orthographic depth scan of the same surface: f = 4000 px at 1000 units, so one
+    # pixel is 0.25 units; heights scale the same way.
+    mask = np.asarray(scene.mask)
+    depth = np.where(mask, 1000.0 - 0.25 * np.asarray(scene.height), np.nan).astype(np.float32)
+    h, w = depth.shape
+    k = np.array([[4000.0, 0, (w - 1) / 2], [0, 4000.0, (h - 1) / 2], [0, 0, 1]])
+    np.savez(root / "depth.npz", depth_gt=depth)
+    np.savetxt(root / "K.txt", k)
+    rc = main(["report", str(out), "--truth-normals", str(truth), "--truth-depth",
+               str(root / "depth.npz"), "--intrinsics", str(root / "K.txt"), "--out",
+               str(tmp_path / "r.html")])
+    assert rc == 0
+    page = tmp_path / "r.html"
+    parsed = _parse(page)
+    _assert_images_resolve(page, parsed.srcs)
+    assert "Against ground truth" in parsed.h2
+    text = page.read_text()
+    ref = jaxps.evaluate.angular_stats(cv2.imread(str(out / "normals.png"), -1)[..., ::-1]
+                                       .astype(np.float32) / 65535 * 2 - 1, scene.normals,
+                                       mask=np.load(out / "status.npy") == 0)
+    # (the page's truth went through a 16-bit PNG, hence the tolerance)
+    np.testing.assert_allclose(_cell(text, "angular error median (deg)"), ref["median_deg"],
+                               rtol=2e-3)
+    # ICP finds the 0.25 units-per-pixel scale of the scan, and the height error is small.
+    np.testing.assert_allclose(_cell(text, "ICP scale (scan units per pixel)"), 0.25, rtol=0.02)
+    assert _cell(text, "RMS height error (scan units)") < 0.05
+
+
+def _cell(text: str, header: str) -> float:
+    return float(text.split(f"{header}</th><td class=\"num\">")[1].split("<")[0])
+
+
+def test_report_rejects_a_folder_that_is_not_a_run(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not a jaxps run"):
+        report.write_report(tmp_path)
+    assert main(["report", str(tmp_path)]) == 2
+
+
+def test_report_escapes_names(synthetic_run, tmp_path):
+    _, out, _ = synthetic_run
+    run = tmp_path / "run"
+    run.mkdir()
+    for name in ("normals.png", "albedo.png", "height.npy", "status.npy"):
+        (run / name).write_bytes((out / name).read_bytes())
+    summary = json.loads((out / "summary.json").read_text())
+    summary["frames"] = ["<script>alert(1)</script>.png"]
+    (run / "summary.json").write_text(json.dumps(summary))
+    page = report.write_report(run)
+    assert "<script>" not in page.read_text()
+    assert "&lt;script&gt;" in page.read_text()
