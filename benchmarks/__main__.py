@@ -135,31 +135,16 @@ def sweep_ps(panel, images, lights, truth, mask, repeats, failures):
     return pts
 
 
-def yale_frames(subject="yaleB01"):
-    """Ambient-subtracted frames and Yale B lights, read with OpenCV."""
-    import cv2
-
-    import jaxps
-
-    root = data_dir() / "yaleb" / subject
-    ambient = cv2.imread(str(root / f"{subject}_P00_Ambient.pgm"), cv2.IMREAD_UNCHANGED)
-    frames, az, el = [], [], []
-    for path in sorted(root.glob(f"{subject}_P00A*.pgm")):
-        a, e = jaxps.parse_yale_name(path.name)
-        img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            continue
-        frames.append(np.clip((img.astype(np.float32) - ambient) / 255.0, 0, 1))
-        az.append(a)
-        el.append(e)
-    return np.stack(frames), np.asarray(az), np.asarray(el)
-
-
 def sweep_yale(repeats, failures):
     import jaxps
 
-    frames, az, el = yale_frames()
-    lights = jaxps.lights_from_angles(az, el)
+    from jaxps.acquisition import load_capture
+
+    folder = data_dir() / "yaleb" / "yaleB01"
+    cap = load_capture(sorted(folder.glob("yaleB01_P00A*.pgm")), yale_names=True,
+                       ambient=folder / "yaleB01_P00_Ambient.pgm")
+    frames, lights = cap.images, cap.lights
+    az, el = np.array([jaxps.parse_yale_name(n) for n in cap.names]).T
     zen = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
     ref = jaxps.photometric_stereo(frames[zen <= 50], lights[zen <= 50], shadow_threshold=0.02)
     mask = (np.asarray(ref.status) == 0) & (np.asarray(ref.albedo) > 0.05)
