@@ -17,6 +17,9 @@ Nearest neighbours come from `scipy.spatial.cKDTree`, built once on the (fixed) 
 each step: O(N log M) per step, where a jitted brute-force search is O(N M) (1.6e9 distance
 evaluations per step for two 40k-point DiLiGenT clouds, seconds on two cores against ~20 ms).
 The loop therefore runs on the host with an explicit `max_steps`; the per-step solves are jitted.
+OpenCV's `ppf_match_3d_ICP` (contrib) is as accurate on DiLiGenT but rigid only (a height map in
+pixel units needs a scale), wants normals on both clouds, reports no per-point distances or
+convergence, and ran 5-15x slower (`benchmarks/bench_icp.py`), so it is the benchmark's baseline.
 
 Point clouds are `(N, 3)` in the camera frame of DESIGN.md (x right, y up, z toward the viewer).
 `points_from_height` and `points_from_depth` turn a height map or a perspective depth map into
