@@ -174,6 +174,17 @@ def main(argv=None) -> dict:
         "sampling": f"source rows/cols not divisible by {step}, target rows not == 1 mod {step}",
         "environment": environment(),
         "objects": results,
+        # For the summary chart of `python -m benchmarks`: one point per method.
+        "points": [
+            {"panel": "ICP, DiLiGenT, undo (3,-4,5) deg + (5,-8,10) mm, mean of 4 objects",
+             "method": name, "error_name": "rotation left (deg)",
+             "error": float(np.mean([r["methods"][name]["rotation_error_deg"] for r in results])),
+             "run_s": float(np.mean([r["methods"][name]["run_s"] for r in results])),
+             "compile_s": float(np.mean([r["methods"][name]["first_call_s"]
+                                         - r["methods"][name]["run_s"] for r in results])),
+             "baseline": name.startswith("opencv")}
+            for name in results[0]["methods"]
+        ],
     }
     path = write_json("icp", payload)
     chart(results, RESULTS / "icp.png")
