@@ -192,3 +192,24 @@ def test_compare_to_scan_on_diligent_depth(data, tmp_path):
                        mask=comp.mask, signed=("height",), units={"height": "mm"}, path=out)
     img = cv2.imread(str(out))
     assert img is not None and img.shape[0] > 100 and img.std() > 10
+
+
+def test_jaxtyping_annotations_hold(face_points):
+    from beartype import beartype
+    from jaxtyping import jaxtyped
+
+    surf = jaxps.synthetic.face_like(32)
+    height, mask = np.asarray(surf.height), np.asarray(surf.mask)
+    checked = {f.__name__: jaxtyped(typechecker=beartype)(f) for f in (
+        ev.points_from_height, ev.points_from_depth, ev.icp, ev.estimate_normals,
+        ev.l2_error, ev.compare_to_scan, ev.transform_points)}
+    pts, pix = checked["points_from_height"](height, mask=mask)
+    k = np.array([[100.0, 0, 16], [0, 100.0, 16], [0, 0, 1]])
+    checked["points_from_depth"](np.where(mask, 50.0 - height, np.nan), k, mask=mask)
+    res = checked["icp"](pts + np.float32(0.5), pts, max_steps=5)
+    checked["transform_points"](pts, res)
+    checked["estimate_normals"](pts)
+    checked["l2_error"](np.asarray(surf.normals), np.asarray(surf.normals), mask=mask)
+    comp = checked["compare_to_scan"](height, pts, mask=mask, normals=np.asarray(surf.normals),
+                                      scale=False, max_steps=5)
+    assert comp.rms_height < 1e-3
