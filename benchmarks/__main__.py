@@ -18,6 +18,7 @@ Writes `benchmarks/results/summary.json` and `benchmarks/results/summary.png`.
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python -m benchmarks            # everything
     PYTHONPATH=src python -m benchmarks --quick --only icp core           # a subset, quickly
     PYTHONPATH=src python -m benchmarks --no-modules                      # the method sweep only
+    PYTHONPATH=src python -m benchmarks --chart-only                      # redraw summary.png
 """
 
 from __future__ import annotations
@@ -245,6 +246,14 @@ def pareto(points: list[dict]) -> list[dict]:
     return front
 
 
+def _minor_label(v, _):
+    """Label the 2x and 5x minor ticks of a log axis, nothing else."""
+    if v <= 0:
+        return ""
+    mantissa = round(v / 10 ** np.floor(np.log10(v)), 6)
+    return f"{v:g}" if mantissa in (2.0, 5.0) else ""
+
+
 def draw(points: list[dict], path) -> None:
     import matplotlib
 
@@ -272,6 +281,9 @@ def draw(points: list[dict], path) -> None:
             ax.annotate(p["method"], (p["run_s"] * 1e3, p["error"]), fontsize=7,
                         xytext=(4, 3), textcoords="offset points")
         ax.set_xscale("log")
+        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(_minor_label))
+        ax.margins(x=0.3)
         errs = [p["error"] for p in pts if p["error"] > 0]
         if errs and max(errs) / min(errs) > 30:
             ax.set_yscale("log")
@@ -302,8 +314,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--no-modules", action="store_true", help="skip the bench_*.py scripts")
     ap.add_argument("--no-sweep", action="store_true", help="skip the in-process method sweep")
     ap.add_argument("--timeout", type=float, default=1800, help="seconds per script")
+    ap.add_argument("--chart-only", action="store_true",
+                    help="redraw summary.png from the existing summary.json; run nothing")
     args = ap.parse_args(argv)
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    if args.chart_only:
+        payload = json.loads((RESULTS / "summary.json").read_text())
+        draw(payload["points"], RESULTS / "summary.png")
+        print(f"redrew {RESULTS / 'summary.png'} from {RESULTS / 'summary.json'}")
+        return payload
 
     topics = [] if args.no_modules else (args.only if args.only is not None else discover())
     unknown = sorted(set(topics) - set(discover()))
