@@ -3,7 +3,14 @@
 import importlib.metadata
 
 from . import evaluate, synthetic
-from ._integrate import INTEGRATION_METHODS, gradients_from_normals, integrate, normals_from_height
+from ._integrate import (
+    INTEGRATION_METHODS,
+    IntegrationResult,
+    gradients_from_normals,
+    integrability_map,
+    integrate,
+    normals_from_height,
+)
 from ._lights import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ._l2 import PSResult
 from ._ps import PS_METHODS, photometric_stereo
@@ -14,12 +21,14 @@ __version__ = importlib.metadata.version("jaxps")
 
 __all__ = [
     "INTEGRATION_METHODS",
+    "IntegrationResult",
     "PSResult",
     "PS_METHODS",
     "Status",
     "angular_error",
     "evaluate",
     "gradients_from_normals",
+    "integrability_map",
     "integrate",
     "lights_from_angles",
     "load_lights",

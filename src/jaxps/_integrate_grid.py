@@ -8,12 +8,14 @@ Laplacian $L_a z = \\operatorname{div}(g)$. $L_a$ is applied as a 5-point stenci
 (cropped) image, never assembled, and solved by conjugate gradients with a Jacobi
 preconditioner inside one `jax.jit` (`lax.while_loop`, explicit step limits).
 
-Why a jitted matrix-free CG rather than `scipy.sparse`: measured on the four DiLiGenT objects
-(see `benchmarks/bench_integration.py`), the bilateral method's ~20-30 reweighting steps need
-~3000 CG steps in all; a direct `splu` costs 0.2-1 s per factorisation (one per step), and the
-same warm-started Jacobi CG through `scipy.sparse.linalg.cg` (with the system re-assembled each
-step, as Cao et al.'s code does) ran about 2-3x slower than this stencil version on the same
-machine. The stencil needs no index arrays and keeps float32.
+Why a jitted matrix-free CG rather than `scipy.sparse`: the bilateral method's ~20-30
+reweighting steps need ~3000 CG steps in all on a DiLiGenT object. A direct `splu` costs
+0.2-1 s per factorisation (one per step) here. `benchmarks/bench_integration.py` runs the same
+algorithm as Cao et al.'s code (system re-assembled each step, warm-started Jacobi
+`scipy.sparse.linalg.cg`) in the same run as a baseline; the stencil version is faster and
+gives the same heights. A 2x2-aggregation multigrid preconditioner was tried: 30x fewer CG
+steps, but each V-cycle was so slow under XLA on CPU that the total was 2-3x slower, and its
+more exact solves moved the result (bear 0.172 -> 0.205 mm MADE), so Jacobi stays.
 """
 
 from __future__ import annotations
@@ -74,8 +76,8 @@ def pcg(ah, av, rhs, x0, *, rtol, max_steps):
     component's mean. Pixels with no edge keep `x0`. Stops when $\\|r\\| \\le$ `rtol` $\\|b\\|$
     or after `max_steps`. Returns `(x, steps, converged)`.
     """
-    diag = _edge_sum(ah, av)
     one = jnp.ones((), rhs.dtype)
+    diag = _edge_sum(ah, av)
     minv = jnp.where(diag > 0, one / jnp.where(diag > 0, diag, one), 0).astype(rhs.dtype)
     bound = (rtol * jnp.linalg.norm(rhs)).astype(rhs.dtype)
     r = rhs - laplacian(x0, ah, av)
@@ -199,3 +201,4 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
     z, _, _, e, e_old, i, n_cg, cg_ok = lax.while_loop(cond, body, init)
     converged = (jnp.abs(e - e_old) <= tol * e_old) & cg_ok
     return GridSolve(z, i, n_cg, converged)
+
