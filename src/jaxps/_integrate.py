@@ -384,8 +384,8 @@ def integrate(
     gc, gr = _height_steps(n, valid, cam)
     steps, solver_steps, converged = 0, 0, True
     if method == "fc":
-        if cam is None:  # the seeds' behaviour, unchanged
-            p, q = gradients_from_normals(normals, mask)
+        if cam is None:  # the seeds' behaviour, on normalised normals
+            p, q = gradients_from_normals(n, mask)
         else:
             p, q = gc, -gr
         eta = _frankot_chellappa(p, q, mask)
