@@ -54,7 +54,7 @@ def edge_div(gh, gv):
 
 
 def laplacian(z, ah, av):
-    """$(L_a z)_i = \\sum_{e \\ni i} a_e (z_i - z_j)$ with edge weights `ah (H, W-1)`, `av (H-1, W)`."""
+    """$(L_a z)_i = \\sum_{e \\ni i} a_e (z_i - z_j)$; edge weights `ah (H, W-1)`, `av (H-1, W)`."""
     return edge_div(ah * (z[:, 1:] - z[:, :-1]), av * (z[1:, :] - z[:-1, :]))
 
 
