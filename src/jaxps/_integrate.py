@@ -98,7 +98,7 @@ def _check_normals(normals, mask):
     return normals, mask
 
 
-def _check_intrinsics(intrinsics, dtype):
+def _check_intrinsics(intrinsics):
     if intrinsics is None:
         return None
     k = np.asarray(intrinsics, np.float64)
@@ -219,7 +219,7 @@ def integrability_map(
     for pixels with no full loop inside it), in the dtype of `normals`.
     """
     normals, mask = _check_normals(normals, mask)
-    cam = _check_intrinsics(intrinsics, normals.dtype)
+    cam = _check_intrinsics(intrinsics)
     n, valid = _unit_normals(normals, mask)
     gc, gr = _height_steps(n, valid, cam)
     return _curl(gc, gr, valid)
@@ -379,7 +379,7 @@ def integrate(
             raise ValueError(f"{name} must be positive, got {value}")
     normals, mask = _check_normals(normals, mask)
     dtype = normals.dtype
-    cam = _check_intrinsics(intrinsics, dtype)
+    cam = _check_intrinsics(intrinsics)
     n, valid = _unit_normals(normals, mask)
     if not bool(jnp.any(valid)):
         raise ValueError("normals has no finite, non-zero normal inside mask")

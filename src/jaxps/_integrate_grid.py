@@ -142,7 +142,8 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
     almost nothing. Orthographic: $m = n_z$, $b^u = -n_x$, $b^v = n_y$ (rows go down); the
     perspective variant only changes $m$ (see `_integrate.py`). Starts from $w = 1/2$ (plain
     least squares), stops when the energy's relative change is below `tol` or after
-    `max_steps` reweightings; each weighted system is solved by warm-started `pcg`.
+    `max_steps` reweightings (the energy as Cao et al.'s code computes it, see `energy`);
+    each weighted system is solved by warm-started `pcg`.
 
     All maps `(H, W)`; returns `GridSolve` with `steps` the reweighting count.
     """
@@ -152,6 +153,12 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
     half = jnp.full_like(mu, 0.5)
     one = jnp.ones((), dt)
     kk = jnp.asarray(k, dt)
+    vd = valid.astype(dt)
+    zero = jnp.zeros((), dt)
+    no_right = vd - jnp.pad(eh, ((0, 0), (0, 1)), constant_values=zero)
+    no_left = vd - jnp.pad(eh, ((0, 0), (1, 0)), constant_values=zero)
+    no_down = vd - jnp.pad(ev, ((0, 1), (0, 0)), constant_values=zero)
+    no_up = vd - jnp.pad(ev, ((1, 0), (0, 0)), constant_values=zero)
 
     def steps_of(z):
         return eh * (z[:, 1:] - z[:, :-1]), ev * (z[1:, :] - z[:-1, :])
@@ -162,7 +169,12 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
         e_left = (one - wu[:, 1:]) * (mu[:, 1:] * dh - bu[:, 1:]) ** 2
         e_down = wv[:-1, :] * (mv[:-1, :] * dv - bv[:-1, :]) ** 2
         e_up = (one - wv[1:, :]) * (mv[1:, :] * dv - bv[1:, :]) ** 2
-        return jnp.sum(eh * (e_right + e_left)) + jnp.sum(ev * (e_down + e_up))
+        inner = jnp.sum(eh * (e_right + e_left)) + jnp.sum(ev * (e_down + e_up))
+        # Cao et al.'s energy also counts the equations of a pixel whose neighbour on that side
+        # is outside the mask (its difference is 0, so the residual is b); only the stopping
+        # rule sees this term.
+        return inner + jnp.sum(no_right * wu * bu**2 + no_left * (one - wu) * bu**2
+                               + no_down * wv * bv**2 + no_up * (one - wv) * bv**2)
 
     def solve(z, wu, wv):
         wr, wl = wu[:, :-1], one - wu[:, 1:]
