@@ -147,7 +147,24 @@ def main():
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--objects", nargs="*", default=list(OBJECTS))
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "integration"))
+    parser.add_argument("--sweep-cg-rtol", action="store_true",
+                        help="only: bilateral (perspective) MADE and CG steps against cg_rtol")
     args = parser.parse_args()
+    if args.sweep_cg_rtol:
+        sweep = {}
+        for name in args.objects:
+            normals, mask, depth, K = load_diligent(name)
+            for rtol in (1e-2, 3e-3, 1e-3, 1e-4):
+                res = jaxps.integrate(normals, mask=mask, method="bilateral", intrinsics=K,
+                                      cg_rtol=rtol, return_info=True)
+                sweep.setdefault(name, {})[str(rtol)] = {
+                    "made_mm": height_stats(res.height, depth, mask=mask)["made"],
+                    "steps": res.steps, "cg_steps": res.solver_steps}
+                print(name, rtol, sweep[name][str(rtol)], flush=True)
+        path = pathlib.Path(args.out + "_cg_rtol.json")
+        path.write_text(json.dumps(sweep, indent=2))
+        print("wrote", path)
+        return
 
     results = {
         "setup": {

@@ -8,14 +8,14 @@ Laplacian $L_a z = \\operatorname{div}(g)$. $L_a$ is applied as a 5-point stenci
 (cropped) image, never assembled, and solved by conjugate gradients with a Jacobi
 preconditioner inside one `jax.jit` (`lax.while_loop`, explicit step limits).
 
-Why a jitted matrix-free CG rather than `scipy.sparse`: the bilateral method's ~20-30
-reweighting steps need ~3000 CG steps in all on a DiLiGenT object. A direct `splu` costs
-0.2-1 s per factorisation (one per step) here. `benchmarks/bench_integration.py` runs the same
-algorithm as Cao et al.'s code (system re-assembled each step, warm-started Jacobi
-`scipy.sparse.linalg.cg`) in the same run as a baseline; the stencil version is faster and
-gives the same heights. A 2x2-aggregation multigrid preconditioner was tried: 30x fewer CG
-steps, but each V-cycle was so slow under XLA on CPU that the total was 2-3x slower, and its
-more exact solves moved the result (bear 0.172 -> 0.205 mm MADE), so Jacobi stays.
+Why a jitted matrix-free CG rather than `scipy.sparse`: the bilateral method's 10-30
+reweighting steps need ~3000-5000 CG steps in all on a DiLiGenT object. A direct `splu` took
+0.2-1 s per factorisation (one per step) on these objects. `benchmarks/bench_integration.py`
+runs Cao et al.'s algorithm as their code does it (system re-assembled each step, warm-started
+Jacobi `scipy.sparse.linalg.cg`, float64) in the same run as a baseline: same heights and step
+counts, 2-3x slower than this stencil version. A 2x2-aggregation multigrid preconditioner was
+tried: far fewer CG steps, but slower in all under XLA on CPU, and its near-exact solves moved
+the result away from Cao et al.'s figures, which depend on their inexact (`rtol=1e-3`) solves.
 """
 
 from __future__ import annotations
