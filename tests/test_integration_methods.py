@@ -346,3 +346,14 @@ def test_diligent_made_matches_the_benchmark(data, name):
         z = jaxps.integrate(normals, mask=mask, method=method, intrinsics=k if persp else None)
         got = made(z, depth, mask=mask)
         assert abs(got - want) < 0.03 * want + 0.005, (label, got, want)
+
+
+@pytest.mark.parametrize("method", ("dct", "lsq", "bilateral"))
+def test_float64_kept(method):
+    _, n, _ = sheared_step(16, 20, radius=4.0)
+    with jax.enable_x64(True):
+        z64 = jaxps.integrate(n.astype(np.float64), method=method)
+        assert z64.dtype == np.float64 and np.all(np.isfinite(np.asarray(z64)))
+    z32 = jaxps.integrate(n, method=method)
+    assert z32.dtype == np.float32
+    np.testing.assert_allclose(np.asarray(z64), np.asarray(z32), atol=0.05)
