@@ -56,6 +56,17 @@ def test_dct_equals_lsq_on_the_full_rectangle(face):
     assert np.max(np.abs(z_lsq - ref)) < 2e-3 * np.ptp(ref)
 
 
+def test_dct_beats_fc_on_a_non_periodic_rectangle():
+    # why "auto" picks "dct", not "fc", for a full rectangle: a ramp is not periodic
+    y, x = np.mgrid[0:40, 0:48].astype(np.float64)
+    z = 0.2 * x + 0.001 * (x - 10) ** 2 + 0.0125 * (y - 5) ** 2  # y here is the row index
+    n = np.stack([-(0.2 + 0.002 * (x - 10)), 0.025 * (y - 5), np.ones_like(z)], -1)
+    n = (n / np.linalg.norm(n, axis=-1, keepdims=True)).astype(np.float32)
+    full = np.ones(z.shape, bool)
+    err = {m: rms_after_offset(jaxps.integrate(n, method=m), z, full) for m in ("fc", "dct")}
+    assert err["dct"] < 1e-3 < 1.0 < err["fc"]
+
+
 def test_lsq_matches_scipy_reference_on_a_mask(face):
     mask = np.asarray(face.mask)
     z = np.asarray(jaxps.integrate(face.normals, mask=mask, method="lsq", cg_rtol=1e-6))
