@@ -147,9 +147,21 @@ def main():
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--objects", nargs="*", default=list(OBJECTS))
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "integration"))
+    parser.add_argument("--quick", action="store_true", help="one warm call per method")
+    parser.add_argument("--redraw", action="store_true",
+                        help="only: re-read the JSON, refresh its summary points and the chart")
     parser.add_argument("--sweep-cg-rtol", action="store_true",
                         help="only: bilateral (perspective) MADE and CG steps against cg_rtol")
     args = parser.parse_args()
+    if args.quick:
+        args.repeat = 1
+    if args.redraw:
+        out = pathlib.Path(args.out)
+        results = json.loads(out.with_suffix(".json").read_text())
+        results["points"] = summary_points(results)
+        out.with_suffix(".json").write_text(json.dumps(results, indent=2))
+        chart(results, out.with_suffix(".png"))
+        return
     if args.sweep_cg_rtol:
         sweep = {}
         for name in args.objects:
@@ -216,11 +228,24 @@ def main():
               f" / from GT depth {rd['gt_depth']['mean_deg']:.2f} (mean)", flush=True)
         results["objects"][name] = row
 
+    results["points"] = summary_points(results)
     out = pathlib.Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.with_suffix(".json").write_text(json.dumps(results, indent=2))
     chart(results, out.with_suffix(".png"))
     print("wrote", out.with_suffix(".json"), out.with_suffix(".png"))
+
+
+def summary_points(results):
+    """Points for `python -m benchmarks`' summary chart: one per object and method."""
+    pts = []
+    for name, row in results["objects"].items():
+        for label in [r[0] for r in RUNS] + ["scipy reference bilateral persp"]:
+            e = row[label]
+            pts.append({"panel": f"integration, DiLiGenT {name}", "method": label,
+                        "run_s": e["run_s"], "error": e["made_mm"], "error_name": "MADE (mm)",
+                        "compile_s": e["compile_s"], "baseline": label.startswith("scipy")})
+    return pts
 
 
 def chart(results, path):
