@@ -3,6 +3,15 @@
 import importlib.metadata
 
 from . import evaluate, synthetic
+from ._brdf import (
+    BRDF_METHODS,
+    BRDFFit,
+    BRDFModel,
+    extrapolation_mask,
+    fit_brdf,
+    relight,
+)
+from ._brdf_features import FEATURE_NAMES, brdf_features
 from ._integrate import (
     INTEGRATION_METHODS,
     IntegrationResult,
@@ -20,13 +29,20 @@ from ._status import Status, status_counts
 __version__ = importlib.metadata.version("jaxps")
 
 __all__ = [
+    "BRDFFit",
+    "BRDFModel",
+    "BRDF_METHODS",
+    "FEATURE_NAMES",
     "INTEGRATION_METHODS",
     "IntegrationResult",
     "PSResult",
     "PS_METHODS",
     "Status",
     "angular_error",
+    "brdf_features",
     "evaluate",
+    "extrapolation_mask",
+    "fit_brdf",
     "gradients_from_normals",
     "integrability_map",
     "integrate",
@@ -35,6 +51,7 @@ __all__ = [
     "normals_from_height",
     "parse_yale_name",
     "photometric_stereo",
+    "relight",
     "render_lambertian",
     "status_counts",
     "synthetic",

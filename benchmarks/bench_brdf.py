@@ -1,0 +1,239 @@
+"""BRDF from five lights: held-out relighting error on Yale B faces, LM training and relight speed.
+
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_brdf.py [--part accuracy|speed|all]
+
+Writes benchmarks/results/brdf.json and brdf.png. Accuracy: for each subject and training set,
+fit normals and albedo by L2 photometric stereo on the five training frames (ambient frame
+subtracted), fit every BRDF method on the same frames, and relight every other light within 60
+(and 30) degrees of the view axis; RMSE in gray levels (0-255) over the face mask. Speed: LM
+training on 100,000 samples and relighting a 700x850 image (compile and run apart).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import pathlib
+import platform
+import time
+
+import cv2
+import jax
+import jax.numpy as jnp
+import numpy as np
+import scipy.ndimage
+
+import jaxps
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+DATA = pathlib.Path(os.environ.get("JAXPS_DATA", ROOT.parent / "shared" / "data"))
+OUT = ROOT / "benchmarks" / "results"
+
+TRAIN_SETS = {
+    # one light at the camera, four 20-25 degrees around it (the scanner's layout)
+    "cross": [(0, 0), (0, 20), (0, -20), (25, 0), (-25, 0)],
+    "alt": [(0, 0), (0, 20), (0, -20), (20, 10), (-25, 0)],
+}
+METHODS = {  # name -> fit_brdf keywords
+    "lambertian": dict(method="lambertian"),
+    "delaunay": dict(method="delaunay", n_samples=30_000),
+    "mlp": dict(method="mlp"),
+    "mlp_ratio": dict(method="mlp_ratio"),
+    "mlp_plain (paper)": dict(method="mlp", lambertian_base=False),
+}
+
+
+def load_yale(subject: str):
+    """(images (K, H, W) in [0, 1] ambient-subtracted, (azimuth, elevation) list) of a subject."""
+    folder = DATA / "yaleb" / subject
+    ambient = cv2.imread(str(folder / f"{subject}_P00_Ambient.pgm"), cv2.IMREAD_UNCHANGED)
+    images, angles = [], []
+    for path in sorted(folder.glob(f"{subject}_P00A*.pgm")):
+        ae = jaxps.parse_yale_name(path.name)
+        if ae is None:
+            continue
+        raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32)
+        images.append((raw - ambient.astype(np.float32)) / 255.0)
+        angles.append(ae)
+    return np.stack(images), angles
+
+
+def face_mask(train_images, ps):
+    """Face mask: lit in every training frame (>= 10 gray), PS status OK, albedo >= 0.3 x its
+    median (drops hair, eyebrows' darkest parts and background), eroded 2 px, largest component."""
+    lit = np.min(train_images, axis=0) >= 10 / 255
+    ok = np.asarray(ps.status) == 0
+    alb = np.asarray(ps.albedo)
+    mask = lit & ok
+    mask &= alb >= 0.3 * np.median(alb[mask])
+    mask = scipy.ndimage.binary_erosion(mask, iterations=2)
+    labels, n = scipy.ndimage.label(mask)
+    if n > 1:
+        sizes = scipy.ndimage.sum(mask, labels, range(1, n + 1))
+        mask = labels == (1 + int(np.argmax(sizes)))
+    return mask
+
+
+def rmse(pred, obs, sel):
+    d = (np.asarray(pred) - obs)[sel] * 255.0
+    return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+
+
+def gain_rmse(pred, obs, mask):
+    """RMSE after each test image gets its best scalar gain (an oracle for flash brightness)."""
+    errs = []
+    for p, o in zip(np.asarray(pred), obs):
+        pm, om = p[mask], o[mask]
+        g = float(pm @ om / max(pm @ pm, 1e-12))
+        errs.append((g * pm - om) * 255.0)
+    return float(np.sqrt(np.mean(np.concatenate(errs) ** 2)))
+
+
+def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt")):
+    results = []
+    for subject in subjects:
+        images, angles = load_yale(subject)
+        lights = jaxps.lights_from_angles(*np.array(angles, float).T)
+        zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
+        for set_name in sets:
+            train = [angles.index(a) for a in TRAIN_SETS[set_name]]
+            test60 = [i for i in range(len(angles)) if i not in train and zenith[i] <= 60]
+            ps = jaxps.photometric_stereo(images[train], lights[train])
+            mask = face_mask(images[train], ps)
+            normals, albedo = ps.normals, ps.albedo
+            obs = images[test60]
+            near = np.array([zenith[i] <= 30 for i in test60])
+            row = {"subject": subject, "train_set": set_name,
+                   "train_lights_deg": TRAIN_SETS[set_name],
+                   "test_lights_60": len(test60), "test_lights_30": int(near.sum()),
+                   "mask_pixels": int(mask.sum()), "methods": {}}
+            for name, kw in METHODS.items():
+                t = time.perf_counter()
+                model = jaxps.fit_brdf(images[train], normals, albedo, lights[train], mask=mask,
+                                       key=jax.random.key(0), **kw)
+                fit_s = time.perf_counter() - t
+                t = time.perf_counter()
+                pred = np.asarray(jaxps.relight(model, normals, albedo, lights[test60], mask=mask))
+                relight_s = time.perf_counter() - t
+                flag = np.asarray(jaxps.extrapolation_mask(model, normals, lights[test60]))
+                sel60 = np.broadcast_to(mask, obs.shape)
+                sel30 = sel60 & near[:, None, None]
+                train_pred = np.asarray(jaxps.relight(model, normals, albedo, lights[train]))
+                f = model.fit
+                row["methods"][name] = {
+                    "rmse_60": rmse(pred, obs, sel60), "rmse_30": rmse(pred, obs, sel30),
+                    "rmse_60_gain_oracle": gain_rmse(pred, obs, mask),
+                    "rmse_60_extrapolated": rmse(pred, obs, sel60 & flag),
+                    "rmse_60_inside": rmse(pred, obs, sel60 & ~flag),
+                    "extrapolated_fraction_60": float(flag[sel60].mean()),
+                    "extrapolated_fraction_30": float(flag[sel30].mean()),
+                    "train_mse_gray2": f.mse * 255**2, "train_rmse_gray": f.rmse * 255,
+                    "train_r": f.r, "steps": f.steps, "converged": f.converged,
+                    "n_samples": f.n_samples, "train_images_rmse": rmse(
+                        train_pred, images[train], np.broadcast_to(mask, train_pred.shape)),
+                    "fit_s": fit_s, "relight_s": relight_s,
+                }
+                m = row["methods"][name]
+                print(f"{subject} {set_name} {name:18s} rmse60 {m['rmse_60']:6.2f} "
+                      f"rmse30 {m['rmse_30']:6.2f} gain60 {m['rmse_60_gain_oracle']:6.2f} "
+                      f"extrap {m['extrapolated_fraction_60']:.3f} "
+                      f"train mse {m['train_mse_gray2']:7.1f} R {f.r:.4f} steps {f.steps} "
+                      f"fit {fit_s:5.1f}s", flush=True)
+            results.append(row)
+    return results
+
+
+def speed(n_samples=100_000, h=700, w=850):
+    """LM training time on n_samples and relight time of an h x w image (synthetic face)."""
+    surf = jaxps.synthetic.face_like(h, w)
+    lights = jaxps.synthetic.scanner_lights(20.0)
+    scene = jaxps.synthetic.render_scene(surf, lights)
+    out = {"n_samples": n_samples, "image": [h, w]}
+    for method in ("mlp", "mlp_ratio"):
+        t = time.perf_counter()
+        model = jaxps.fit_brdf(scene.images, scene.normals, scene.albedo, lights, mask=scene.mask,
+                               method=method, key=jax.random.key(0), n_samples=n_samples)
+        first = time.perf_counter() - t
+        t = time.perf_counter()
+        model = jaxps.fit_brdf(scene.images, scene.normals, scene.albedo, lights, mask=scene.mask,
+                               method=method, key=jax.random.key(1), n_samples=n_samples)
+        second = time.perf_counter() - t
+        out[f"train_{method}_first_s"] = first
+        out[f"train_{method}_s"] = second
+        out[f"train_{method}_steps"] = model.fit.steps
+        print(f"train {method}: first call (compile) {first:.2f} s, second {second:.2f} s, "
+              f"{model.fit.steps} steps", flush=True)
+    light = jaxps.lights_from_angles([30.0], [10.0])
+    for method in ("mlp_ratio", "lambertian"):
+        m = model if method == "mlp_ratio" else jaxps.fit_brdf(
+            scene.images, scene.normals, scene.albedo, lights, mask=scene.mask, method=method)
+        t = time.perf_counter()
+        jaxps.relight(m, scene.normals, scene.albedo, light).block_until_ready()
+        compile_s = time.perf_counter() - t
+        runs = []
+        for _ in range(10):
+            t = time.perf_counter()
+            jaxps.relight(m, scene.normals, scene.albedo, light).block_until_ready()
+            runs.append(time.perf_counter() - t)
+        out[f"relight_{method}_compile_s"] = compile_s
+        out[f"relight_{method}_ms_median"] = 1e3 * float(np.median(runs))
+        out[f"relight_{method}_ms_min"] = 1e3 * float(np.min(runs))
+        print(f"relight {method} {h}x{w}: compile {compile_s:.2f} s, "
+              f"median {1e3 * np.median(runs):.1f} ms, min {1e3 * np.min(runs):.1f} ms", flush=True)
+    # the Lambertian baseline rendered by the core library, same image
+    normals, albedo = scene.normals, scene.albedo
+    jaxps.render_lambertian(normals, albedo, light).block_until_ready()
+    runs = []
+    for _ in range(10):
+        t = time.perf_counter()
+        jaxps.render_lambertian(normals, albedo, light).block_until_ready()
+        runs.append(time.perf_counter() - t)
+    out["render_lambertian_ms_median"] = 1e3 * float(np.median(runs))
+    print(f"render_lambertian: median {1e3 * np.median(runs):.1f} ms", flush=True)
+    return out
+
+
+def chart(acc, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(acc), figsize=(4 * len(acc), 3.6), sharey=True, squeeze=False)
+    for ax, row in zip(axes[0], acc):
+        names = list(row["methods"])
+        x = np.arange(len(names))
+        ax.bar(x - 0.2, [row["methods"][n]["rmse_60"] for n in names], 0.4, label="<= 60 deg")
+        ax.bar(x + 0.2, [row["methods"][n]["rmse_30"] for n in names], 0.4, label="<= 30 deg")
+        ax.set_xticks(x, names, rotation=60, ha="right", fontsize=7)
+        ax.set_title(f"{row['subject']} {row['train_set']}", fontsize=9)
+    axes[0, 0].set_ylabel("held-out RMSE (gray levels)")
+    axes[0, 0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--part", choices=("accuracy", "speed", "all"), default="all")
+    parser.add_argument("--subjects", nargs="+", default=["yaleB01", "yaleB02"])
+    parser.add_argument("--sets", nargs="+", default=["cross", "alt"])
+    args = parser.parse_args()
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / "brdf.json"
+    res = json.loads(path.read_text()) if path.exists() else {}
+    res["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(),
+                      "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
+                      "jax": jax.__version__, "backend": jax.default_backend()}
+    if args.part in ("accuracy", "all"):
+        res["accuracy"] = accuracy(tuple(args.subjects), tuple(args.sets))
+        chart(res["accuracy"], OUT / "brdf.png")
+    if args.part in ("speed", "all"):
+        res["speed"] = speed()
+    path.write_text(json.dumps(res, indent=1))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
