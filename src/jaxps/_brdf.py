@@ -386,7 +386,8 @@ def fit_brdf(
                                          linear_solver=lx.Normal(lx.Cholesky()))
     params, steps, ok, res = _train_mlp_jit(
         params, f, rho, target, box_lo, box_hi, support, rho_ref, bound=float(bound), cell=cell,
-        base=bool(lambertian_base), ratio=ratio, use_xy=bool(use_xy), solver=solver, max_steps=int(max_steps))
+        base=bool(lambertian_base), ratio=ratio, use_xy=bool(use_xy), solver=solver,
+        max_steps=int(max_steps))
     model = BRDFModel(method, params, **common)
     msg = "converged" if bool(ok) else f"stopped at max_steps={max_steps} or failed"
     return _with_fit(model, res + target, target, int(steps), bool(ok), t0, msg)
@@ -418,8 +419,10 @@ class _DelaunayBRDF:
         return np.where(outside, lambert, out)
 
     def outside(self, angles):
+        """Outside the hull, or in a degenerate (flat) simplex where scipy returns NaN: the samples
+        of one light lie on a 2-D surface in (θi, θr, Δα), so slivers are common."""
         with threadpool_limits(1, user_api="blas"):
-            return self.tri.find_simplex(angles) < 0
+            return ~np.isfinite(self.interp(angles))
 
 
 def relight(
@@ -495,7 +498,7 @@ def extrapolation_mask(
     For the MLP methods and Lambertian: (θi, θr, Δα) where the support grid's interpolated
     occupancy is below 0.5 (the MLP's correction is scaled by that occupancy, so it fades to
     Lambert's law there); for Delaunay: (θi, θr, Δα) outside the triangulation's convex
-    hull (Lambert's law is returned there).
+    hull or in a degenerate simplex (Lambert's law is returned there).
     """
     normals = jnp.asarray(normals)
     if not jnp.issubdtype(normals.dtype, jnp.floating):

@@ -33,10 +33,13 @@ FEATURE_NAMES = ("theta_i", "theta_r", "delta_alpha", "x", "y")
 
 def _angle(a, b):
     """Angle between 3-vectors `a` and `b` (need not be unit), 0 when either is ~0."""
-    cross = jnp.linalg.norm(jnp.cross(a, b))
+    c = jnp.cross(a, b)
+    c2 = jnp.dot(c, c)
+    tiny = jnp.asarray(1e-24, a.dtype)
+    # double-where: sqrt and arctan2 never see the singular point, so gradients stay finite
+    cross = jnp.where(c2 > tiny, jnp.sqrt(jnp.where(c2 > tiny, c2, 1)), 0)
     dot = jnp.dot(a, b)
-    tiny = jnp.asarray(1e-12, a.dtype)
-    small = (cross <= tiny) & (jnp.abs(dot) <= tiny)
+    small = (c2 <= tiny) & (jnp.abs(dot) <= 1e-12)
     return jnp.where(small, jnp.zeros((), a.dtype),
                      jnp.arctan2(cross, jnp.where(small, jnp.ones((), a.dtype), dot)))
 
@@ -89,8 +92,7 @@ def _features(normals, lights):
     dtype = normals.dtype
     n = normals / jnp.maximum(jnp.linalg.norm(normals, axis=-1, keepdims=True),
                               jnp.asarray(1e-12, dtype))
-    lights = lights / jnp.maximum(jnp.linalg.norm(lights, axis=-1, keepdims=True),
-                                  jnp.asarray(1e-12, dtype))
+    lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
     view = jnp.array([0, 0, 1], dtype)
     per_pixel = jax.vmap(_sample_angles, in_axes=(0, None, None))
     per_light = jax.vmap(per_pixel, in_axes=(None, 0, None))
