@@ -223,3 +223,28 @@ def test_bad_input(scene):
         jaxps.relight(model, s["normals"], s["albedo"], [0.0, 0.0, -1.0])
     with pytest.raises(ValueError, match="mask"):
         jaxps.relight(model, s["normals"], s["albedo"], s["train"], mask=s["mask"][1:])
+
+
+# --------------------------------------------------------------------------- command line
+
+
+def test_cli_relight_yale(data, tmp_path):
+    from PIL import Image
+
+    from jaxps.cli import main
+
+    folder = data / "yaleb" / "yaleB01"
+    names = ["A+000E+00", "A+000E+20", "A+000E-20", "A+025E+00", "A-025E+00"]
+    frames = [str(folder / f"yaleB01_P00{n}.pgm") for n in names]
+    out = tmp_path / "relit"
+    rc = main(["relight", *frames, "--yale-names", "--ambient",
+               str(folder / "yaleB01_P00_Ambient.pgm"), "--method", "lambertian",
+               "--light=-35,15", "--circle-frames", "4", "--out", str(out)])
+    assert rc == 0
+    img = np.asarray(Image.open(out / "relit_A-035E+15.png"))
+    assert img.shape == (192, 168) and img.dtype == np.uint8
+    # azimuth -35 lights the image's right side (Yale B convention)
+    assert img[:, 100:].mean() > img[:, :68].mean() + 10
+    gif = Image.open(out / "relight.gif")
+    assert gif.n_frames == 4
+    assert main(["relight", *frames, "--yale-names", "--light", "35", "--out", str(out)]) == 2
