@@ -241,10 +241,11 @@ def test_cli_relight_yale(data, tmp_path):
                str(folder / "yaleB01_P00_Ambient.pgm"), "--method", "lambertian",
                "--light=-35,15", "--circle-frames", "4", "--out", str(out)])
     assert rc == 0
-    img = np.asarray(Image.open(out / "relit_A-035E+15.png"))
+    with Image.open(out / "relit_A-035E+15.png") as im:
+        img = np.asarray(im)
     assert img.shape == (192, 168) and img.dtype == np.uint8
     # azimuth -35 lights the image's right side (Yale B convention)
     assert img[:, 100:].mean() > img[:, :68].mean() + 10
-    gif = Image.open(out / "relight.gif")
-    assert gif.n_frames == 4
+    with Image.open(out / "relight.gif") as gif:
+        assert gif.n_frames == 4
     assert main(["relight", *frames, "--yale-names", "--light", "35", "--out", str(out)]) == 2
