@@ -470,9 +470,11 @@ def relight(
 @eqx.filter_jit
 def _relight_jit(model, normals, albedo, lights):
     dtype = normals.dtype
-    f = _features(normals, lights)
     if model.method == "lambertian":
-        return albedo[None] * jnp.maximum(jnp.cos(f[..., 0]), 0)
+        unit = normals / jnp.maximum(jnp.linalg.norm(normals, axis=-1, keepdims=True),
+                                     jnp.asarray(1e-12, dtype))
+        return albedo[None] * jnp.maximum(jnp.einsum("kc,hwc->khw", lights, unit), 0)
+    f = _features(normals, lights)
     params = jax.tree.map(lambda a: a.astype(dtype), model.params)
     ratio = model.method == "mlp_ratio"
 
