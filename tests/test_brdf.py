@@ -198,6 +198,24 @@ def test_mlp_degrades_to_lambert_where_flagged(scene, fitted):
     assert np.all(np.abs(got - lam)[flag] <= bound[flag] + 1e-6)
 
 
+# --------------------------------------------------------------------------- BRDF in the loop
+
+
+def test_brdf_in_the_loop_lambertian_matches_l2(scene):
+    s = scene
+    images = np.asarray(jaxps.render_lambertian(s["normals"], s["albedo"], s["train"]))
+    l2 = jaxps.photometric_stereo(images, s["train"], mask=s["mask"])
+    res = jaxps.brdf_photometric_stereo(images, s["train"], mask=s["mask"], method="lambertian",
+                                        iterations=1, max_steps=5)
+    err = np.asarray(jaxps.angular_error(res.normals, s["normals"], mask=s["mask"]))
+    assert err[s["mask"]].max() < 0.1  # exact Lambertian data: stays at the truth
+    np.testing.assert_allclose(np.asarray(res.albedo)[s["mask"]],
+                               np.asarray(l2.albedo)[s["mask"]], atol=1e-3)
+    assert set(np.unique(np.asarray(res.status)[s["mask"]])) <= {0, int(jaxps.Status.NOT_CONVERGED)}
+    with pytest.raises(ValueError, match="method"):
+        jaxps.brdf_photometric_stereo(images, s["train"], method="delaunay")
+
+
 # --------------------------------------------------------------------------- bad input
 
 

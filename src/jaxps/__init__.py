@@ -12,6 +12,7 @@ from ._brdf import (
     relight,
 )
 from ._brdf_features import FEATURE_NAMES, brdf_features
+from ._brdf_ps import brdf_photometric_stereo
 from ._integrate import (
     INTEGRATION_METHODS,
     IntegrationResult,
@@ -40,6 +41,7 @@ __all__ = [
     "Status",
     "angular_error",
     "brdf_features",
+    "brdf_photometric_stereo",
     "evaluate",
     "extrapolation_mask",
     "fit_brdf",
