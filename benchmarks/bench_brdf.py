@@ -1,6 +1,7 @@
 """BRDF from five lights: held-out relighting error on Yale B faces, LM training and relight speed.
 
-    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_brdf.py [--part accuracy|speed|loop|all]
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_brdf.py \
+        [--part accuracy|speed|loop|all]
 
 Writes benchmarks/results/brdf.json and brdf.png (`--part loop`: brdf_loop.json, BRDF-in-the-loop
 photometric stereo against a many-light reference). Accuracy: for each subject and training set,

@@ -46,14 +46,14 @@ def features_vectorised(normals, lights):
 
 
 def render_non_lambertian(normals, albedo, lights, sigma=0.4, ks=0.2, shininess=20.0):
-    """Oren–Nayar (qualitative model, roughness `sigma`) plus a Blinn–Phong lobe, view (0,0,1)."""
+    """Oren–Nayar (qualitative, roughness `sigma`) plus a Blinn–Phong lobe, view (0, 0, 1)."""
     f = features_vectorised(normals, lights)
     ti, tr, da = f[..., 0], f[..., 1], f[..., 2]
     a = 1 - 0.5 * sigma**2 / (sigma**2 + 0.33)
     b = 0.45 * sigma**2 / (sigma**2 + 0.09)
     alpha, beta = np.maximum(ti, tr), np.minimum(ti, tr)
-    diffuse = np.maximum(np.cos(ti), 0) * (a + b * np.maximum(0, np.cos(da)) * np.sin(alpha)
-                                            * np.tan(beta))
+    diffuse = np.maximum(np.cos(ti), 0) * (
+        a + b * np.maximum(0, np.cos(da)) * np.sin(alpha) * np.tan(beta))
     lights = np.asarray(lights, np.float64)
     half = lights + np.array([0.0, 0.0, 1.0])
     half /= np.linalg.norm(half, axis=-1, keepdims=True)

@@ -11,7 +11,7 @@ Conventions (DESIGN.md camera frame, orthographic view $v = (0, 0, 1)$):
 |---|---|---|---|
 | `theta_i` | $\\arccos(n \\cdot l)$ | $[0, \\pi]$ ($> \\pi/2$: attached shadow) | radians |
 | `theta_r` | $\\arccos(n \\cdot v) = \\arccos n_z$ | $[0, \\pi/2]$ for $n_z \\ge 0$ | radians |
-| `delta_alpha` | angle between the projections of $l$ and $v$ on the tangent plane | $[0, \\pi]$ | radians |
+| `delta_alpha` | angle between $l$ and $v$ projected on the tangent plane | $[0, \\pi]$ | radians |
 | `x` | $2\\,c/(W-1) - 1$ for column $c$ | $[-1, 1]$, right positive | — |
 | `y` | $1 - 2\\,r/(H-1)$ for row $r$ | $[-1, 1]$, up positive | — |
 
