@@ -284,7 +284,11 @@ def main():
         res["speed_quick"] = speed(n_samples=20_000, h=350, w=425, steps=5)
         args.part = "none"
     if args.part in ("accuracy", "all"):
-        res["accuracy"] = accuracy(tuple(args.subjects), tuple(args.sets))
+        new = accuracy(tuple(args.subjects), tuple(args.sets))
+        done = {(r["subject"], r["train_set"]) for r in new}
+        kept = [r for r in res.get("accuracy", []) if (r["subject"], r["train_set"]) not in done]
+        res["accuracy"] = sorted(kept + new, key=lambda r: (r["train_set"] != "cross",
+                                                            r["train_set"], r["subject"]))
         chart(res["accuracy"], OUT / "brdf.png")
     if args.part in ("speed", "all"):
         res["speed"] = speed()
