@@ -267,3 +267,17 @@ def test_cli_relight_yale(data, tmp_path):
     with Image.open(out / "relight.gif") as gif:
         assert gif.n_frames == 4
     assert main(["relight", *frames, "--yale-names", "--light", "35", "--out", str(out)]) == 2
+
+
+def test_jaxtyping_annotations_hold(scene, fitted):
+    from beartype import beartype
+    from jaxtyping import jaxtyped
+
+    s = scene
+    feats = jaxtyped(typechecker=beartype)(jaxps.brdf_features)(s["normals"], s["train"])
+    assert feats.shape == (5, 40, 40, 5)
+    out = jaxtyped(typechecker=beartype)(jaxps.relight)(
+        fitted["mlp"], s["normals"], s["albedo"], s["test"], mask=s["mask"])
+    flag = jaxtyped(typechecker=beartype)(jaxps.extrapolation_mask)(
+        fitted["mlp"], s["normals"], s["test"])
+    assert out.shape == flag.shape == (4, 40, 40) and flag.dtype == bool
