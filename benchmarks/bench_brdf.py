@@ -153,8 +153,8 @@ def speed(n_samples=100_000, h=700, w=850, steps=30):
     lights = jaxps.synthetic.scanner_lights(20.0)
     scene = jaxps.synthetic.render_scene(surf, lights)
     out = {"n_samples": n_samples, "image": [h, w], "lm_steps": steps,
-           "note": "rtol = atol = 0 so LM always runs its 30 steps (the fit_brdf default); "
-                   "fit times include feature extraction and sampling"}
+           "note": f"rtol = atol = 0 so LM always runs its {steps} steps (fit_brdf's default "
+                   "is 30); fit times include feature extraction and sampling"}
     # zero tolerances: LM never stops early, so the time is for exactly max_steps=30 steps
     solver = optx.LevenbergMarquardt(rtol=0.0, atol=0.0, linear_solver=lx.Normal(lx.Cholesky()))
     for method in ("mlp", "mlp_ratio"):
