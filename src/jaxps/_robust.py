@@ -241,7 +241,8 @@ def _pixel_sbl(i, usable, lights, thresholds, lambda1, lambda2, gamma_min, rtol,
 def _lift(kernel, images, lights, mask, sample_mask, thresholds):
     k, h, w, c = images.shape
     flat = images.reshape(k, h * w, c)
-    usable = sample_mask.reshape(k, h * w)
+    # Masked pixels get no usable sample, so the iterative kernels stop at once there.
+    usable = (sample_mask & mask[None]).reshape(k, h * w)
     if lights.ndim == 2:
         light_axis = None
     else:

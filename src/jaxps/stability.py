@@ -170,11 +170,11 @@ def render_corrupted(
     if shadows:
         mean_dir = jnp.mean(lpix, axis=(1, 2)) if lights.ndim == 4 else lights
         mean_dir = mean_dir / jnp.linalg.norm(mean_dir, axis=-1, keepdims=True)
-        shadow = cast_shadow_mask(surface.height, mean_dir) & mask
+        shadow = cast_shadow_mask(surface.height, mean_dir) & mask[None]
     else:
         shadow = jnp.zeros((k, h, w), bool)
     cos = jnp.einsum("khwc,hwc->khw", lpix, n)
-    half = lpix + jnp.array([0.0, 0.0, 1.0], jnp.float32)
+    half = lpix + jnp.array([0.0, 0.0, 1.0], jnp.float32)[None, None, None]
     half = half / jnp.maximum(jnp.linalg.norm(half, axis=-1, keepdims=True), 1e-6)
     spec = specular * jnp.maximum(jnp.einsum("khwc,hwc->khw", half, n), 0) ** shininess
     spec = jnp.where(cos > 0, spec, 0)
@@ -185,5 +185,5 @@ def render_corrupted(
         if key is None:
             raise ValueError("noise > 0 needs key=jax.random.key(...)")
         images = images + noise * jax.random.normal(key, images.shape, images.dtype)
-    images = jnp.where(mask, jnp.clip(images, 0, 1), 0)
-    return Corrupted(images, lights, n, albedo, mask, shadow, jnp.where(mask, spec, 0))
+    images = jnp.where(mask[None], jnp.clip(images, 0, 1), 0)
+    return Corrupted(images, lights, n, albedo, mask, shadow, jnp.where(mask[None], spec, 0))
