@@ -176,7 +176,8 @@ def near_photometric_stereo(
     height = jnp.broadcast_to(jnp.asarray(height0, dtype), (h, w))
     if not bool(jnp.all(jnp.isfinite(height))):
         raise ValueError("height0 must be finite")
-    level = jnp.sum(jnp.where(mask, height, 0)) / jnp.maximum(jnp.sum(mask), 1)
+    count = jnp.maximum(jnp.sum(mask), 1).astype(dtype)
+    level = jnp.sum(jnp.where(mask, height, 0)) / count
     if tol is None:
         tol = 1e-3 * float(np.mean(np.linalg.norm(positions, axis=-1)))
     changes = []
@@ -185,13 +186,13 @@ def near_photometric_stereo(
         lights, falloff = near_light_field(positions, surface_points(height, pixel_size=pixel_size),
                                            mu=mu)
         fall = falloff if images.ndim == 3 else falloff[..., None]
-        corrected = images / jnp.maximum(fall, jnp.finfo(dtype).tiny).astype(dtype)
+        corrected = images / jnp.maximum(fall, jnp.finfo(dtype).tiny).astype(images.dtype)
         res = photometric_stereo(corrected, lights, mask=mask, method=method, **options)
         ok = mask & (res.status == Status.OK)
         if not bool(jnp.any(ok)):
             break
         z = integrate(res.normals, mask=ok, pixel_size=pixel_size)
-        z = z - jnp.sum(jnp.where(mask, z, 0)) / jnp.sum(mask) + level
+        z = z - jnp.sum(jnp.where(mask, z, 0)) / count + level
         new = jnp.where(mask, z, height).astype(dtype)
         change = float(jnp.max(jnp.where(mask, jnp.abs(new - height), 0)))
         changes.append(change)
