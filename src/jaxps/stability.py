@@ -17,7 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._lights import lights_from_angles
 from ._near import near_light_field
 from ._ps import photometric_stereo
 from ._status import Status
@@ -187,3 +186,128 @@ def render_corrupted(
         images = images + noise * jax.random.normal(key, images.shape, images.dtype)
     images = jnp.where(mask[None], jnp.clip(images, 0, 1), 0)
     return Corrupted(images, lights, n, albedo, mask, shadow, jnp.where(mask[None], spec, 0))
+
+
+SWEEPS: dict[str, tuple[float, ...]] = {
+    "noise": (0.0, 0.005, 0.01, 0.02, 0.05),
+    "n_lights": (3, 4, 5, 6, 8, 10, 12),
+    "light_error_deg": (0.0, 1.0, 2.0, 5.0, 10.0),
+    "zenith_deg": (10.0, 20.0, 30.0, 45.0, 60.0),
+    "gain": (1.0, 1.5, 2.0, 3.0),
+    "near_distance_mm": (300.0, 600.0, 1200.0, 2400.0),
+}
+"""The sweeps `sweep` knows, with default values. Base scene: `face_like(h)`, 5 lights (one on
+the axis, four on a 20-degree cone), 0.5% noise, cast shadows and a Blinn-Phong lobe
+($k_s$ = 0.3, exponent 60) unless the sweep varies them:
+
+- `noise`: image noise sigma (no specular lobe);
+- `n_lights`: K lights on a 35-degree cone (K >= 4 with one on the axis);
+- `light_error_deg`: every light given to the solver is rotated by this angle (random axis);
+- `zenith_deg`: cone angle of the four outer lights (more cast and attached shadow);
+- `gain`: exposure gain (more saturation at 1);
+- `near_distance_mm`: point lights at this distance, face ~190 mm high (3 mm pixels), solved as
+  distant lights and with `near_photometric_stereo` (`"near-l2"`).
+"""
+
+
+def _scene_for(name, value, h, key):
+    surf = jaxps_synthetic_face(h)
+    k1, k2 = jax.random.split(key)
+    base = dict(specular=0.3, shininess=60.0, noise=0.005, key=k1)
+    lights = ring_lights(5, 20.0)
+    solver_lights = lights
+    gain = 1.0
+    extra = {}
+    if name == "noise":
+        base.update(specular=0.0, noise=float(value))
+    elif name == "n_lights":
+        k = int(value)
+        lights = solver_lights = ring_lights(k, 35.0, centre=k >= 4)
+    elif name == "light_error_deg":
+        solver_lights = perturb_lights(lights, float(value), key=k2)
+    elif name == "zenith_deg":
+        lights = solver_lights = ring_lights(5, float(value))
+    elif name == "gain":
+        gain = float(value)
+    elif name == "near_distance_mm":
+        pixel = 3.0 * 64 / h
+        positions = float(value) * np.asarray(lights, np.float64)
+        height = np.asarray(surf.height) * pixel
+        from ._near import surface_points
+
+        field, fall = near_light_field(positions, surface_points(height, pixel_size=pixel))
+        extra = dict(positions=positions, pixel=pixel, level=float(height[np.asarray(surf.mask)]
+                                                                    .mean()))
+        scene = render_corrupted(surf, field, falloff=fall, **base)
+        return scene, lights, extra
+    else:
+        raise ValueError(f"unknown sweep {name!r}; choose from {tuple(SWEEPS)}")
+    scene = render_corrupted(surf, lights, **base)
+    if gain != 1.0:
+        scene = scene._replace(images=jnp.clip(scene.images * gain, 0, 1))
+    return scene, solver_lights, extra
+
+
+def jaxps_synthetic_face(h):
+    from .synthetic import face_like
+
+    return face_like(h)
+
+
+def sweep(
+    name: str,
+    values=None,
+    *,
+    methods: tuple[str, ...] | None = None,
+    h: int = 96,
+    key: jax.Array | None = None,
+) -> dict:
+    """Angular error of each method as one corruption grows (see `SWEEPS`).
+
+    **Arguments:**
+    - `name`: a key of `SWEEPS`; `values` default to its values.
+    - `methods`: `photometric_stereo` methods (default all of `jaxps.PS_METHODS`).
+    - `h`: image height of the `face_like` scene.
+    - `key`: PRNG key for noise and light perturbations (default `jax.random.key(0)`).
+
+    **Returns:** a JSON-ready dict: `name`, `values`, per-value scene facts (`shadowed`,
+    `saturated`, `specular` fractions of object samples) and, per method, lists of
+    `median_deg`, `mean_deg`, `p95_deg` (over the object), `ok_fraction` (status OK) and
+    `nonfinite` (count of NaN/Inf outputs, which must be 0).
+    """
+    from ._ps import PS_METHODS
+    from ._near import near_photometric_stereo
+
+    if name not in SWEEPS:
+        raise ValueError(f"name must be one of {tuple(SWEEPS)}, got {name!r}")
+    values = SWEEPS[name] if values is None else tuple(values)
+    methods = PS_METHODS if methods is None else tuple(methods)
+    key = jax.random.key(0) if key is None else key
+    names = list(methods) + (["near-l2"] if name == "near_distance_mm" else [])
+    out = {"name": name, "values": list(values), "h": h, "scene": [],
+           "methods": {m: {f: [] for f in ("median_deg", "mean_deg", "p95_deg", "ok_fraction",
+                                           "nonfinite")} for m in names}}
+    for i, value in enumerate(values):
+        scene, solver_lights, extra = _scene_for(name, value, h, jax.random.fold_in(key, i))
+        m = np.asarray(scene.mask)
+        out["scene"].append({
+            "shadowed": float(np.asarray(scene.shadow)[:, m].mean()),
+            "saturated": float((np.asarray(scene.images)[:, m] >= 1).mean()),
+            "specular": float((np.asarray(scene.specular)[:, m] > 0.02).mean()),
+        })
+        for meth in names:
+            if meth == "near-l2":
+                res = near_photometric_stereo(scene.images, extra["positions"], mask=m,
+                                              height0=extra["level"],
+                                              pixel_size=extra["pixel"], max_steps=8).ps
+            else:
+                res = photometric_stereo(scene.images, solver_lights, mask=m, method=meth)
+            st = angular_stats(res.normals, scene.normals, mask=m)
+            rec = out["methods"][meth]
+            for f in ("median_deg", "mean_deg", "p95_deg"):
+                rec[f].append(st[f])
+            rec["ok_fraction"].append(float((np.asarray(res.status)[m] == Status.OK).mean()))
+            rec["nonfinite"].append(int(sum(
+                (~np.isfinite(np.asarray(a))).sum() for a in (res.normals, res.albedo,
+                                                              res.residual))))
+    return out
