@@ -367,8 +367,9 @@ def ps_sbl(images, lights, mask, sample_mask, thresholds, *, lambda1: float = 10
     Intensities are divided by the pixel's mean used intensity $s$ first, so `lambda1`,
     `lambda2` (the priors of RobustPhotometricStereo's `sparse_bayesian_learning`) and
     `gamma_min` are brightness-free. RobustPhotometricStereo's `lambda1 = 1` on raw intensities
-    equals `lambda1` $= 1/s^2$ here; the default 100 ($s$ = 0.1) matched its accuracy on the
-    benchmark scene (`benchmarks/bench_robust.py`), where `lambda1 = 1` was about L2's.
+    equals `lambda1` $= 1/s^2$ here; the default 100 ($s$ = 0.1) was picked by hand on the
+    benchmark scene (`benchmarks/bench_robust.py`; `lambda1 = 1` there was about L2's accuracy).
+    It remains less accurate than RobustPhotometricStereo's SBL there (see docs/robust.md).
 
     **Arguments** (besides the solver arguments of `photometric_stereo`):
     - `lambda1`, `lambda2`: regularisers of the posterior covariance and of the solve.
