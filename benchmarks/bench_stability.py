@@ -24,7 +24,10 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--h", type=int, default=96)
     ap.add_argument("--sweeps", nargs="*", default=list(SWEEPS))
+    ap.add_argument("--quick", action="store_true", help="48-pixel scenes")
     args = ap.parse_args()
+    if args.quick:
+        args.h = 48
     t0 = time.perf_counter()
     results = {}
     for name in args.sweeps:

@@ -110,7 +110,7 @@ def lights_from_chrome(
     return ChromeCalibration(lights.astype(np.float32), highlights, (r0, c0), radius, ok)
 
 
-def load_psm(folder: str | os.PathLike, name: str | None = None, *, linear: bool = True
+def load_psm(folder: str | os.PathLike, *, name: str | None = None, linear: bool = True
              ) -> tuple[Float[np.ndarray, "K H W 3"], Float[np.ndarray, "H W"]]:
     """Read a psm capture `NAME.0.png ... NAME.{K-1}.png` and `NAME.mask.png` from `folder`.
 
