@@ -2,7 +2,7 @@
 
 import importlib.metadata
 
-from . import evaluate, synthetic
+from . import evaluate, stability, synthetic
 from ._brdf import (
     BRDF_METHODS,
     BRDFFit,
@@ -13,6 +13,7 @@ from ._brdf import (
 )
 from ._brdf_features import FEATURE_NAMES, brdf_features
 from ._brdf_ps import brdf_photometric_stereo
+from ._calibration import ChromeCalibration, lights_from_chrome, load_psm, sphere_from_mask
 from ._integrate import (
     INTEGRATION_METHODS,
     IntegrationResult,
@@ -23,6 +24,7 @@ from ._integrate import (
 )
 from ._lights import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ._l2 import PSResult
+from ._near import NearResult, near_light_field, near_photometric_stereo, surface_points
 from ._ps import PS_METHODS, photometric_stereo
 from ._render import angular_error, render_lambertian
 from ._status import Status, status_counts
@@ -33,9 +35,11 @@ __all__ = [
     "BRDFFit",
     "BRDFModel",
     "BRDF_METHODS",
+    "ChromeCalibration",
     "FEATURE_NAMES",
     "INTEGRATION_METHODS",
     "IntegrationResult",
+    "NearResult",
     "PSResult",
     "PS_METHODS",
     "Status",
@@ -49,13 +53,20 @@ __all__ = [
     "integrability_map",
     "integrate",
     "lights_from_angles",
+    "lights_from_chrome",
     "load_lights",
+    "load_psm",
+    "near_light_field",
+    "near_photometric_stereo",
     "normals_from_height",
     "parse_yale_name",
     "photometric_stereo",
     "relight",
     "render_lambertian",
+    "sphere_from_mask",
+    "stability",
     "status_counts",
+    "surface_points",
     "synthetic",
     "validate_lights",
 ]

@@ -15,11 +15,15 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ._l2 import PSResult, ps_l2
 from ._lights import validate_lights
+from ._robust import ps_barsky, ps_irls, ps_sbl
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
 
 _SOLVERS = {
     "l2": ps_l2,
+    "barsky": ps_barsky,
+    "irls": ps_irls,
+    "sbl": ps_sbl,
 }
 PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
 
