@@ -26,6 +26,7 @@ from ._lights import lights_from_angles, load_lights, parse_yale_name, validate_
 from ._l2 import PSResult
 from ._near import NearResult, near_light_field, near_photometric_stereo, surface_points
 from ._ps import PS_METHODS, photometric_stereo
+from ._semicalibrated import INTENSITY_METHODS, intensity_estimate
 from ._render import angular_error, render_lambertian
 from ._status import Status, status_counts
 
@@ -37,6 +38,7 @@ __all__ = [
     "BRDF_METHODS",
     "ChromeCalibration",
     "FEATURE_NAMES",
+    "INTENSITY_METHODS",
     "INTEGRATION_METHODS",
     "IntegrationResult",
     "NearResult",
@@ -52,6 +54,7 @@ __all__ = [
     "gradients_from_normals",
     "integrability_map",
     "integrate",
+    "intensity_estimate",
     "lights_from_angles",
     "lights_from_chrome",
     "load_lights",
