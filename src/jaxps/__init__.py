@@ -27,6 +27,14 @@ from ._l2 import PSResult
 from ._near import NearResult, near_light_field, near_photometric_stereo, surface_points
 from ._ps import PS_METHODS, photometric_stereo
 from ._semicalibrated import INTENSITY_METHODS, intensity_estimate
+from ._quality import (
+    FrameCheck,
+    QualityReport,
+    QualityThresholds,
+    check_file,
+    check_frames,
+    drop_flagged,
+)
 from ._render import angular_error, render_lambertian
 from ._status import Status, status_counts
 
@@ -38,16 +46,22 @@ __all__ = [
     "BRDF_METHODS",
     "ChromeCalibration",
     "FEATURE_NAMES",
+    "FrameCheck",
     "INTENSITY_METHODS",
     "INTEGRATION_METHODS",
     "IntegrationResult",
     "NearResult",
     "PSResult",
     "PS_METHODS",
+    "QualityReport",
+    "QualityThresholds",
     "Status",
     "angular_error",
     "brdf_features",
     "brdf_photometric_stereo",
+    "check_file",
+    "check_frames",
+    "drop_flagged",
     "evaluate",
     "extrapolation_mask",
     "fit_brdf",
