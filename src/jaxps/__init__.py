@@ -35,6 +35,7 @@ from ._quality import (
     check_frames,
     drop_flagged,
 )
+from ._register import Registration, estimate_shifts, register_frames, shift_frames
 from ._render import angular_error, render_lambertian
 from ._status import Status, status_counts
 
@@ -55,6 +56,7 @@ __all__ = [
     "PS_METHODS",
     "QualityReport",
     "QualityThresholds",
+    "Registration",
     "Status",
     "angular_error",
     "brdf_features",
@@ -62,6 +64,7 @@ __all__ = [
     "check_file",
     "check_frames",
     "drop_flagged",
+    "estimate_shifts",
     "evaluate",
     "extrapolation_mask",
     "fit_brdf",
@@ -79,9 +82,11 @@ __all__ = [
     "parse_yale_name",
     "photometric_stereo",
     "relight",
+    "register_frames",
     "render_lambertian",
     "sphere_from_mask",
     "stability",
+    "shift_frames",
     "status_counts",
     "surface_points",
     "synthetic",
