@@ -14,6 +14,7 @@ from ._brdf import (
 from ._brdf_features import FEATURE_NAMES, brdf_features
 from ._brdf_ps import brdf_photometric_stereo
 from ._calibration import ChromeCalibration, lights_from_chrome, load_psm, sphere_from_mask
+from ._batch import photometric_stereo_batch, reconstruct_many, summary_table
 from ._integrate import (
     INTEGRATION_METHODS,
     IntegrationResult,
@@ -82,6 +83,8 @@ __all__ = [
     "parse_yale_name",
     "photometric_stereo",
     "relight",
+    "photometric_stereo_batch",
+    "reconstruct_many",
     "register_frames",
     "render_lambertian",
     "sphere_from_mask",
@@ -89,6 +92,7 @@ __all__ = [
     "shift_frames",
     "status_counts",
     "surface_points",
+    "summary_table",
     "synthetic",
     "validate_lights",
 ]

@@ -1,0 +1,217 @@
+"""Many captures at once: a leading capture axis, `jax.vmap` over captures, sharded across devices.
+
+A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
+captures of the same size in one jitted call: the single-capture solver is lifted over the
+capture axis with `jax.vmap`, and when several devices are present the capture axis is split
+across them with `jax.sharding` (a 1-D mesh named `"captures"`). The results equal N separate
+`photometric_stereo` calls. `reconstruct_many` runs capture folders through loading, quality
+checks and the batched solve with one progress bar and a summary table.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
+
+from ._l2 import PSResult
+from ._lights import validate_lights
+from ._ps import PS_METHODS, photometric_stereo
+
+__all__ = ["photometric_stereo_batch", "reconstruct_many", "summary_table"]
+
+_CACHE: dict = {}
+
+
+def _stack_captures(images) -> jax.Array:
+    if isinstance(images, (list, tuple)):
+        if not images:
+            raise ValueError("images: empty list of captures")
+        shapes = [np.shape(c) for c in images]
+        for i, s in enumerate(shapes):
+            if s != shapes[0]:
+                raise ValueError(
+                    f"images: capture {i} has shape {s} but capture 0 has {shapes[0]}; a batch "
+                    "needs captures of one size (crop or resize them, or solve them separately)")
+        images = jnp.stack([jnp.asarray(c) for c in images])
+    images = jnp.asarray(images)
+    if images.ndim not in (4, 5):
+        raise ValueError(
+            f"images must be (N, K, H, W) or (N, K, H, W, C), got shape {images.shape}")
+    return images
+
+
+def _batched_fn(method, options):
+    key = (method, tuple(sorted(options.items())))
+    try:
+        hash(key)
+    except TypeError:
+        key = None
+    if key is not None and key in _CACHE:
+        return _CACHE[key]
+
+    def single(images, lights, mask, sample_mask):
+        return photometric_stereo(images, lights, mask=mask, sample_mask=sample_mask,
+                                  method=method, **options)
+
+    fn = jax.jit(jax.vmap(single))
+    if key is not None:
+        _CACHE[key] = fn
+    return fn
+
+
+def photometric_stereo_batch(
+    images: Float[ArrayLike, "N K H W *C"] | Sequence[Float[ArrayLike, "K H W *C"]],
+    lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "N K 3"],
+    *,
+    mask: Bool[ArrayLike, "H W"] | Bool[ArrayLike, "N H W"] | None = None,
+    sample_mask: Bool[ArrayLike, "N K H W"] | None = None,
+    method: str = "l2",
+    chunk: int | None = None,
+    **options,
+) -> PSResult:
+    """Photometric stereo on N captures at once (`jax.vmap` over the capture axis).
+
+    **Arguments:**
+    - `images`: `(N, K, H, W)` or `(N, K, H, W, C)`, or a list of N `(K, H, W[, C])` captures
+      (all the same shape).
+    - `lights`: `(K, 3)` shared by every capture, or `(N, K, 3)`.
+    - `mask`: `(H, W)` shared or `(N, H, W)`; default all pixels.
+    - `sample_mask`: `(N, K, H, W)` bool; default all samples.
+    - `method`: one of `jaxps.PS_METHODS` (solver options as in `photometric_stereo`).
+    - `chunk`: solve at most this many captures per call (bounds memory); default all.
+
+    With several devices the capture axis of each chunk is padded to a multiple of the device
+    count and sharded across them.
+
+    **Returns:** a `PSResult` whose arrays have a leading N axis (`info` entries too).
+
+    **Raises:** `ValueError` for captures of different sizes (naming the capture), or shapes of
+    `lights`/`mask` that do not match.
+    """
+    if method not in PS_METHODS:
+        raise ValueError(f"method must be one of {PS_METHODS}, got {method!r}")
+    images = _stack_captures(images)
+    if not jnp.issubdtype(images.dtype, jnp.floating):
+        raise ValueError(f"images must be floating point in [0, 1], got {images.dtype}")
+    n, k, h, w = images.shape[:4]
+    lights = np.asarray(lights, np.float32)
+    if lights.shape == (k, 3):
+        lights = np.broadcast_to(validate_lights(lights), (n, k, 3))
+    elif lights.shape == (n, k, 3):
+        lights = np.stack([validate_lights(lt) for lt in lights])
+    else:
+        raise ValueError(f"lights must be ({k}, 3) or ({n}, {k}, 3), got {lights.shape}")
+    if mask is None:
+        mask = np.ones((n, h, w), bool)
+    mask = np.asarray(mask, bool)
+    if mask.shape == (h, w):
+        mask = np.broadcast_to(mask, (n, h, w))
+    elif mask.shape != (n, h, w):
+        raise ValueError(f"mask must be ({h}, {w}) or ({n}, {h}, {w}), got {mask.shape}")
+    if sample_mask is None:
+        sample_mask = np.ones((n, k, h, w), bool)
+    sample_mask = np.asarray(sample_mask, bool)
+    if sample_mask.shape != (n, k, h, w):
+        raise ValueError(f"sample_mask must be {(n, k, h, w)}, got {sample_mask.shape}")
+    if chunk is not None and not (isinstance(chunk, int) and chunk >= 1):
+        raise ValueError(f"chunk must be a positive int, got {chunk!r}")
+
+    fn = _batched_fn(method, options)
+    devices = jax.devices()
+    step = n if chunk is None else chunk
+    parts = []
+    for start in range(0, n, step):
+        sl = slice(start, min(start + step, n))
+        args = [images[sl], jnp.asarray(lights[sl], images.dtype), jnp.asarray(mask[sl]),
+                jnp.asarray(sample_mask[sl])]
+        m = args[0].shape[0]
+        if len(devices) > 1:
+            pad = (-m) % len(devices)
+            if pad:
+                args = [jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) for a in args]
+            mesh = jax.sharding.Mesh(np.array(devices), ("captures",))
+            spec = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("captures"))
+            args = [jax.device_put(a, spec) for a in args]
+        out = fn(*args)
+        parts.append(jax.tree_util.tree_map(lambda x: x[:m], out))
+    if len(parts) == 1:
+        return parts[0]
+    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
+
+
+def summary_table(rows: Sequence[dict]) -> str:
+    """A plain-text table of per-capture summaries (one row per capture, columns from the keys
+    of the first row)."""
+    if not rows:
+        return "(no captures)"
+    cols = list(rows[0])
+    cells = [[str(c) for c in cols]] + [[_fmt(r.get(c, "")) for c in cols] for r in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(cols))]
+    lines = ["  ".join(v.ljust(wd) for v, wd in zip(row, widths)).rstrip() for row in cells]
+    lines.insert(1, "  ".join("-" * wd for wd in widths))
+    return "\n".join(lines)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    return str(v)
+
+
+def reconstruct_many(
+    folders: Sequence[str | os.PathLike],
+    *,
+    method: str = "l2",
+    check_quality: bool = True,
+    progress: bool = True,
+    **load_options,
+) -> tuple[list[PSResult | None], list[dict]]:
+    """Load, check and solve many capture folders, with one progress bar over the captures.
+
+    Each folder is loaded with `jaxps.acquisition.load_capture(folder, **load_options)`; with
+    `check_quality`, flagged frames are dropped (`drop_flagged`) and named in the summary. A
+    capture that cannot be loaded or keeps fewer than 3 frames is reported (`error` column) and
+    its result is None; nothing is skipped silently.
+
+    **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
+    `summary_table(rows)` formats the rows.
+    """
+    from tqdm.auto import tqdm
+
+    from ._quality import check_frames, drop_flagged
+    from ._status import Status
+    from .acquisition import load_capture
+
+    results, rows = [], []
+    bar = tqdm(list(folders), desc="captures", unit="capture", disable=not progress)
+    for folder in bar:
+        row = {"capture": os.path.basename(os.path.normpath(os.fspath(folder))), "frames": 0,
+               "dropped": "", "ok_pixels": 0, "ok_%": 0.0, "error": ""}
+        res = None
+        try:
+            cap = load_capture(folder, **load_options)
+            if cap.lights is None:
+                raise ValueError("no lights (give lights= or yale_names=True)")
+            images, lights, sample_mask = cap.images, cap.lights, ~cap.saturated
+            row["frames"] = len(cap.names)
+            if check_quality:
+                report = check_frames(images, names=list(cap.names), mask=cap.mask)
+                images, lights, kept = drop_flagged(images, lights, report)
+                sample_mask = sample_mask[kept]
+                row["dropped"] = ", ".join(f"{f.name} ({f.reasons[0]})" for f in report.flagged)
+            res = photometric_stereo(images, lights, mask=cap.mask, sample_mask=sample_mask,
+                                     method=method)
+            ok = int(np.sum(np.asarray(res.status) == Status.OK))
+            row["ok_pixels"] = ok
+            row["ok_%"] = 100.0 * ok / max(int(cap.mask.sum()), 1)
+        except (ValueError, FileNotFoundError) as err:
+            row["error"] = str(err).splitlines()[0]
+        results.append(res)
+        rows.append(row)
+    bar.close()
+    return results, rows
