@@ -12,7 +12,7 @@ Measures per frame (grey mean of the channels, inside `mask` where one is given)
   Yale B); interlaced or row-striped frames give tens.
 - `bad_rows`: rows whose mean differs from both neighbouring rows in the same direction (a spike;
   a scene edge is a one-sided step) by more than `row_z` robust standard deviations (1.4826 times
-  the median spike) and by more than 0.02.
+  the median spike) and by more than 0.05.
 - `truncated_rows`: rows at the bottom that are exactly constant (how a short read is padded);
   flagged from `max(min_truncated_rows, truncated_fraction * H)` rows on, since a few black rows
   are an ordinary border. `check_file` finds short PGM/PPM files from their headers.
@@ -22,7 +22,8 @@ Measures per frame (grey mean of the channels, inside `mask` where one is given)
   combination of the other (unflagged) frames. Under Lambert's law without shadows every image is
   a linear combination of any three others (Shashua 1992; Belhumeur & Kriegman 1998), so a frame
   that cannot be predicted is corrupt, from another scene, or moved. It is compared with the
-  median over the frames (`inconsistency_ratio`), needs K >= 4, and uses a sub-grid of pixels.
+  median over the frames (`inconsistency_ratio`); the worst frame is flagged and the rest
+  re-measured. It needs 5 unflagged frames and uses a sub-grid of pixels.
 """
 
 from __future__ import annotations
@@ -133,7 +134,7 @@ def _frame_measures(frame, mask, dark_level, saturation, row_z):
     valid = valid.at[0].set(False).at[-1].set(False)
     spike_v = jnp.where(valid, spike, jnp.nan)
     scale = jnp.maximum(1.4826 * jnp.nanmedian(jnp.abs(spike_v)), 1e-3)
-    bad = valid & (spike > row_z * scale) & (spike > 0.02)
+    bad = valid & (spike > row_z * scale) & (spike > 0.05)
     bad_rows = jnp.sum(bad)
 
     # Trailing rows that are constant and equal to the last row.
@@ -248,16 +249,23 @@ def check_frames(
             reasons[i].append(
                 f"saturated: {mi['saturated_fraction']:.0%} of pixels at or above "
                 f"{t.saturation}")
+    # Leave-one-out consistency, one frame at a time: flag the worst frame if it stands out,
+    # then re-measure the rest. Each frame must be predicted from at least 4 others (3 others
+    # may have coplanar lights and predict nothing), so this needs 5 unflagged frames.
     candidates = np.array([not r for r in reasons], bool)
-    incons = _inconsistency(np.asarray(grey), np.asarray(sel), candidates)
-    finite = incons[np.isfinite(incons)]
-    if finite.size:
-        typical = float(np.median(finite))
-        for i in np.flatnonzero(np.isfinite(incons)):
-            if incons[i] > max(t.inconsistency_ratio * typical, t.inconsistency_min):
-                reasons[i].append(
-                    f"inconsistent with the other frames: leave-one-out residual "
-                    f"{incons[i]:.2f} vs median {typical:.2f}")
+    incons = np.full(k, np.nan)
+    grey_np, sel_np = np.asarray(grey), np.asarray(sel)
+    while candidates.sum() >= 5:
+        current = _inconsistency(grey_np, sel_np, candidates)
+        incons = np.where(candidates, current, incons)
+        typical = float(np.nanmedian(current))
+        worst = int(np.nanargmax(current))
+        if current[worst] <= max(t.inconsistency_ratio * typical, t.inconsistency_min):
+            break
+        reasons[worst].append(
+            f"inconsistent with the other frames: leave-one-out residual {current[worst]:.2f} "
+            f"vs median {typical:.2f}")
+        candidates[worst] = False
     checks = []
     for i in range(k):
         mi = {key: float(v[i]) for key, v in meas.items()}

@@ -1,0 +1,89 @@
+"""Frame quality checks on synthetic corruptions, and on the real Yale B frames."""
+
+import re
+
+import cv2
+import numpy as np
+import pytest
+
+import jaxps
+from helpers import face_scene
+
+
+def _frames():
+    scene = face_scene(64, noise=0.005, seed=3)
+    return scene, np.clip(np.asarray(scene.images) + 0.05, 0, 1).astype(np.float32)
+
+
+def test_clean_capture_passes():
+    scene, frames = _frames()
+    report = jaxps.check_frames(frames, mask=scene.mask)
+    assert report.keep.all(), report.summary()
+
+
+@pytest.mark.parametrize("kind, frame, words", [
+    ("interlace", 1, "interlace"),
+    ("rows", 2, "corrupt rows|row/interlace"),
+    ("saturated", 3, "saturated"),
+    ("dark", 4, "dark"),
+    ("truncated", 1, "truncated"),
+    ("other_scene", 2, "inconsistent"),
+])
+def test_corruption_is_flagged(kind, frame, words):
+    scene, frames = _frames()
+    f = frames[frame]
+    if kind == "interlace":
+        f[1::2] = np.roll(f[1::2], 3, axis=1) * 0.7
+    elif kind == "rows":
+        f[[20, 33]] = 1.0
+    elif kind == "saturated":
+        frames[frame] = np.clip(f * 4, 0, 1)
+    elif kind == "dark":
+        frames[frame] = f * 0.01
+    elif kind == "truncated":
+        f[-20:] = 0.0
+    elif kind == "other_scene":
+        frames[frame] = np.asarray(jax_random_frame(f.shape))
+    report = jaxps.check_frames(frames, mask=None if kind == "truncated" else scene.mask,
+                                names=[f"f{i}.png" for i in range(5)])
+    assert [c.index for c in report.flagged] == [frame], report.summary()
+    assert re.search(words, report.summary())
+    assert f"f{frame}.png" in report.summary()
+    kept_frames, kept_lights, kept = jaxps.drop_flagged(frames, scene.lights, report)
+    assert list(kept) == [i for i in range(5) if i != frame]
+    assert kept_frames.shape[0] == 4 and kept_lights.shape == (4, 3)
+
+
+def jax_random_frame(shape):
+    rng = np.random.default_rng(0)
+    return rng.uniform(0.1, 0.9, shape).astype(np.float32)
+
+
+def test_every_frame_flagged_raises_with_reasons():
+    scene, frames = _frames()
+    frames = frames * 0.001
+    report = jaxps.check_frames(frames, mask=scene.mask)
+    assert not report.keep.any()
+    with pytest.raises(ValueError, match=r"only 0 of 5 frames passed(.|\n)*dark"):
+        jaxps.drop_flagged(frames, scene.lights, report)
+
+
+def test_check_file_truncated_pgm(tmp_path):
+    img = (np.arange(40 * 30) % 256).astype(np.uint8).reshape(40, 30)
+    path = tmp_path / "a.pgm"
+    cv2.imwrite(str(path), img)
+    assert jaxps.check_file(path) is None
+    data = path.read_bytes()
+    path.write_bytes(data[:-100])
+    assert "truncated" in jaxps.check_file(path)
+    assert jaxps.check_file(tmp_path / "missing.pgm") == "missing file"
+
+
+def test_yaleb_interlaced_frames_flagged(data):
+    folder = data / "yaleb" / "yaleB02"
+    names = ["yaleB02_P00A+000E+00.pgm", "yaleB02_P00A+020E-10.pgm", "yaleB02_P00A+025E+00.pgm",
+             "yaleB02_P00A-020E-10.pgm", "yaleB02_P00A+000E+20.pgm"]
+    frames = np.stack([cv2.imread(str(folder / n), cv2.IMREAD_UNCHANGED) for n in names])
+    report = jaxps.check_frames(frames.astype(np.float32) / 255, names=names)
+    assert [c.name for c in report.flagged] == names[1:3]
+    assert all("interlace" in c.reasons[0] for c in report.flagged)
