@@ -2,8 +2,9 @@
 
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
 captures of the same size in one jitted call: the single-capture solver is lifted over the
-capture axis with `jax.vmap`, and when several devices are present the capture axis is split
-across them with `jax.sharding` (a 1-D mesh named `"captures"`). The results equal N separate
+capture axis with `jax.vmap` (in groups of `vmap_size`, run in sequence by `jax.lax.map`), and
+when several devices are present the capture axis is split across them with `jax.sharding`
+(a 1-D mesh named `"captures"`). The results equal N separate
 `photometric_stereo` calls. `reconstruct_many` runs capture folders through loading, quality
 checks and the batched solve with one progress bar and a summary table.
 """
@@ -45,8 +46,8 @@ def _stack_captures(images) -> jax.Array:
     return images
 
 
-def _batched_fn(method, options):
-    key = (method, tuple(sorted(options.items())))
+def _batched_fn(method, options, shared_lights, shared_mask, vmap_size):
+    key = (method, shared_lights, shared_mask, vmap_size, tuple(sorted(options.items())))
     try:
         hash(key)
     except TypeError:
@@ -58,7 +59,20 @@ def _batched_fn(method, options):
         return photometric_stereo(images, lights, mask=mask, sample_mask=sample_mask,
                                   method=method, **options)
 
-    fn = jax.jit(jax.vmap(single))
+    # Shared lights / mask stay unbatched (closed over), so per-light work is done once.
+    def batched(images, lights, mask, sample_mask):
+        def one(xs):
+            img, lt, msk, smask = xs
+            return single(img, lights if shared_lights else lt,
+                          mask if shared_mask else msk, smask)
+
+        xs = (images, None if shared_lights else lights, None if shared_mask else mask,
+              sample_mask)
+        if vmap_size is None:
+            return jax.vmap(one)(xs)
+        return jax.lax.map(one, xs, batch_size=vmap_size)
+
+    fn = jax.jit(batched)
     if key is not None:
         _CACHE[key] = fn
     return fn
@@ -72,6 +86,7 @@ def photometric_stereo_batch(
     sample_mask: Bool[ArrayLike, "N K H W"] | None = None,
     method: str = "l2",
     chunk: int | None = None,
+    vmap_size: int | None = None,
     **options,
 ) -> PSResult:
     """Photometric stereo on N captures at once (`jax.vmap` over the capture axis).
@@ -83,10 +98,16 @@ def photometric_stereo_batch(
     - `mask`: `(H, W)` shared or `(N, H, W)`; default all pixels.
     - `sample_mask`: `(N, K, H, W)` bool; default all samples.
     - `method`: one of `jaxps.PS_METHODS` (solver options as in `photometric_stereo`).
-    - `chunk`: solve at most this many captures per call (bounds memory); default all.
+    - `chunk`: solve at most this many captures per call (bounds host/device memory); default
+      all.
+    - `vmap_size`: captures vectorised together with `jax.vmap` inside one call; the groups run
+      one after another (`jax.lax.map(..., batch_size=vmap_size)`). `None` (default) vmaps the
+      whole chunk. On a CPU neither beats N single calls (the pixels already fill the cores,
+      and under `vmap` the L2 solver's whole-image fast path, a `lax.cond` on "no sample
+      dropped", evaluates both branches): see docs/captures.md for the measured ratios.
 
-    With several devices the capture axis of each chunk is padded to a multiple of the device
-    count and sharded across them.
+    With several devices the whole chunk is vmapped and its capture axis padded to a multiple
+    of the device count and sharded across them (a 1-D mesh `"captures"`).
 
     **Returns:** a `PSResult` whose arrays have a leading N axis (`info` entries too).
 
@@ -100,8 +121,9 @@ def photometric_stereo_batch(
         raise ValueError(f"images must be floating point in [0, 1], got {images.dtype}")
     n, k, h, w = images.shape[:4]
     lights = np.asarray(lights, np.float32)
-    if lights.shape == (k, 3):
-        lights = np.broadcast_to(validate_lights(lights), (n, k, 3))
+    shared_lights = lights.shape == (k, 3)
+    if shared_lights:
+        lights = validate_lights(lights)
     elif lights.shape == (n, k, 3):
         lights = np.stack([validate_lights(lt) for lt in lights])
     else:
@@ -109,34 +131,40 @@ def photometric_stereo_batch(
     if mask is None:
         mask = np.ones((n, h, w), bool)
     mask = np.asarray(mask, bool)
-    if mask.shape == (h, w):
-        mask = np.broadcast_to(mask, (n, h, w))
-    elif mask.shape != (n, h, w):
+    shared_mask = mask.shape == (h, w)
+    if not shared_mask and mask.shape != (n, h, w):
         raise ValueError(f"mask must be ({h}, {w}) or ({n}, {h}, {w}), got {mask.shape}")
-    if sample_mask is None:
-        sample_mask = np.ones((n, k, h, w), bool)
-    sample_mask = np.asarray(sample_mask, bool)
-    if sample_mask.shape != (n, k, h, w):
-        raise ValueError(f"sample_mask must be {(n, k, h, w)}, got {sample_mask.shape}")
+    if sample_mask is not None:
+        sample_mask = np.asarray(sample_mask, bool)
+        if sample_mask.shape != (n, k, h, w):
+            raise ValueError(f"sample_mask must be {(n, k, h, w)}, got {sample_mask.shape}")
     if chunk is not None and not (isinstance(chunk, int) and chunk >= 1):
         raise ValueError(f"chunk must be a positive int, got {chunk!r}")
 
-    fn = _batched_fn(method, options)
+    if vmap_size is not None and not (isinstance(vmap_size, int) and vmap_size >= 1):
+        raise ValueError(f"vmap_size must be a positive int or None, got {vmap_size!r}")
+    fn = _batched_fn(method, options, shared_lights, shared_mask,
+                     None if len(jax.devices()) > 1 else vmap_size)
     devices = jax.devices()
     step = n if chunk is None else chunk
     parts = []
     for start in range(0, n, step):
         sl = slice(start, min(start + step, n))
-        args = [images[sl], jnp.asarray(lights[sl], images.dtype), jnp.asarray(mask[sl]),
-                jnp.asarray(sample_mask[sl])]
+        args = [images[sl],
+                jnp.asarray(lights if shared_lights else lights[sl], images.dtype),
+                jnp.asarray(mask if shared_mask else mask[sl]),
+                None if sample_mask is None else jnp.asarray(sample_mask[sl])]
+        batched = [True, not shared_lights, not shared_mask, sample_mask is not None]
         m = args[0].shape[0]
         if len(devices) > 1:
             pad = (-m) % len(devices)
-            if pad:
-                args = [jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) for a in args]
             mesh = jax.sharding.Mesh(np.array(devices), ("captures",))
-            spec = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("captures"))
-            args = [jax.device_put(a, spec) for a in args]
+            split = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("captures"))
+            whole = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+            args = [a if a is None else jax.device_put(
+                        jnp.concatenate([a, jnp.repeat(a[-1:], pad, axis=0)]) if pad else a,
+                        split) if b else jax.device_put(a, whole)
+                    for a, b in zip(args, batched)]
         out = fn(*args)
         parts.append(jax.tree_util.tree_map(lambda x: x[:m], out))
     if len(parts) == 1:
