@@ -62,3 +62,35 @@ def test_summary_table():
     assert lines[0].split() == ["capture", "ok_%"]
     assert lines[2].split() == ["a", "99.1"]
     assert lines[3].split() == ["bb", "5"]
+
+
+def test_cli_many_folders(tmp_path, capsys):
+    import cv2
+
+    from jaxps.cli import main
+
+    scene = face_scene(48)
+    lights = np.asarray(scene.lights)
+    folders = []
+    for name, corrupt in (("a", False), ("b", True), ("c", None)):
+        folder = tmp_path / name
+        folder.mkdir()
+        folders.append(str(folder))
+        if corrupt is None:
+            continue  # an empty folder: reported as an error, not skipped
+        frames = np.asarray(scene.images).copy()
+        if corrupt:
+            frames[2, 1::2] = 0.0  # interlace-like combing
+        for i, f in enumerate(frames):
+            cv2.imwrite(str(folder / f"f{i}.pgm"), np.round(f * 255).astype(np.uint8))
+    light_file = tmp_path / "lights.txt"
+    light_file.write_text("5\n" + "\n".join(" ".join(map(str, r)) for r in lights))
+    rc = main(["reconstruct", *folders, "--lights", str(light_file), "--check-quality",
+               "--out", str(tmp_path / "out")])
+    out = capsys.readouterr().out
+    assert rc == 1
+    lines = {ln.split()[0]: ln for ln in out.splitlines() if ln[:1] in "abc"}
+    assert "f2.pgm (row/interlace" in lines["b"]
+    assert "no frame files" in lines["c"]
+    assert (tmp_path / "out" / "a" / "normals.png").is_file()
+    assert not (tmp_path / "out" / "c").exists()

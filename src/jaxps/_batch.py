@@ -243,3 +243,27 @@ def reconstruct_many(
         rows.append(row)
     bar.close()
     return results, rows
+
+
+def cli_reconstruct_many(args) -> int:
+    """`jaxps reconstruct DIR1 DIR2 ... --out OUT`: every folder is one capture; writes
+    `OUT/<folder>/normals.png`, `albedo.png`, `status.npy`, prints a summary table and writes
+    `OUT/summary.json`. Returns 1 if any capture failed (named in the table), else 0."""
+    from ._outputs import write_albedo, write_json, write_normal_map
+
+    load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
+                        mask=args.mask, crop_face=args.crop_face, equalize=args.equalize)
+    results, rows = reconstruct_many(args.frames, method=args.method,
+                                     check_quality=args.check_quality, **load_options)
+    os.makedirs(args.out, exist_ok=True)
+    for folder, res, row in zip(args.frames, results, rows):
+        if res is None:
+            continue
+        sub = os.path.join(args.out, row["capture"])
+        os.makedirs(sub, exist_ok=True)
+        write_normal_map(os.path.join(sub, "normals.png"), np.asarray(res.normals))
+        write_albedo(os.path.join(sub, "albedo.png"), np.asarray(res.albedo))
+        np.save(os.path.join(sub, "status.npy"), np.asarray(res.status))
+    write_json(os.path.join(args.out, "summary.json"), {"captures": rows})
+    print(summary_table(rows))
+    return 1 if any(r["error"] for r in rows) else 0

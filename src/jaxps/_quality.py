@@ -28,6 +28,7 @@ Measures per frame (grey mean of the channels, inside `mask` where one is given)
 
 from __future__ import annotations
 
+import logging
 import os
 from typing import NamedTuple
 
@@ -43,6 +44,7 @@ __all__ = [
     "check_file",
     "check_frames",
     "drop_flagged",
+    "screen_capture",
 ]
 
 
@@ -339,3 +341,26 @@ def check_file(path: str | os.PathLike) -> str | None:
     if cv2.imread(path, cv2.IMREAD_UNCHANGED) is None:
         return "unreadable image"
     return None
+
+
+_LOG = logging.getLogger("jaxps")
+
+
+def screen_capture(images, saturated, names, lights, mask=None):
+    """The acquisition hook (`load_capture(..., check_quality=True)`): check the frames, log
+    what was flagged and why (logger `"jaxps"`, level WARNING), and drop flagged frames.
+
+    **Returns:** `(images, saturated, names, lights, report)` with the flagged frames removed.
+
+    **Raises:** `ValueError` listing every flagged frame when fewer than 3 frames remain.
+    """
+    report = check_frames(np.asarray(images), names=list(names), mask=mask)
+    if report.flagged:
+        _LOG.warning("%s", report.summary())
+    kept = np.flatnonzero(report.keep)
+    if len(kept) < 3:
+        raise ValueError(
+            f"frames: only {len(kept)} of {len(names)} frames passed the quality checks, need "
+            f"at least 3.\n{report.summary()}")
+    return (images[kept], saturated[kept], tuple(names[i] for i in kept),
+            None if lights is None else lights[kept], report)

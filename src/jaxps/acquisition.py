@@ -291,6 +291,7 @@ def load_capture(
     equalize: bool = False,
     crop_face: bool = False,
     linearize: str = "auto",
+    check_quality: bool = False,
 ) -> Capture:
     """Load a capture: frames, lights, ambient subtraction, equalisation, face crop, mask.
 
@@ -304,6 +305,8 @@ def load_capture(
     - `equalize`: scale frames to equal mean intensity over the mask (`equalize_mean`).
     - `crop_face`: crop to the face found by `detect_face` in the mean frame.
     - `linearize`: see `read_image`.
+    - `check_quality`: run `jaxps.check_frames` on the ambient-subtracted frames and drop the
+      flagged ones (logged on logger `"jaxps"`; `ValueError` if fewer than 3 remain).
 
     **Raises:** `FileNotFoundError`/`ValueError` naming the offending file or argument.
     """
@@ -342,6 +345,12 @@ def load_capture(
                 f"{images.shape[1:]}"
             )
         images = subtract_ambient(images, amb)
+
+    if check_quality:
+        from ._quality import screen_capture
+
+        images, saturated, names, light_array, _ = screen_capture(
+            images, saturated, names, light_array)
 
     if isinstance(mask, np.ndarray):
         if mask.shape != images.shape[1:3]:

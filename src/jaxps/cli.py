@@ -18,7 +18,10 @@ def _add_reconstruct(sub) -> None:
         "frame stack, and write normals.png (16-bit, n = v/65535*2-1), albedo.png, height.npy, "
         "mesh.ply, preview.png and summary.json to --out.",
     )
-    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
+    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
+                   "several folders are several captures (one progress bar, a summary table)")
+    p.add_argument("--check-quality", action="store_true",
+                   help="drop frames flagged by jaxps.check_frames (several folders only)")
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--lights", help="lights.txt: optional count line, then 'x y z' per frame")
     g.add_argument("--yale-names", action="store_true",
@@ -249,6 +252,10 @@ def reconstruct(
 
 
 def _cmd_reconstruct(args) -> int:
+    if len(args.frames) > 1 and all(os.path.isdir(f) for f in args.frames):
+        from ._batch import cli_reconstruct_many
+
+        return cli_reconstruct_many(args)
     summary = reconstruct(
         args.frames, args.out, lights=args.lights, yale_names=args.yale_names,
         ambient=args.ambient, mask=args.mask, crop_face=args.crop_face, equalize=args.equalize,
