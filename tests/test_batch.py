@@ -94,3 +94,33 @@ def test_cli_many_folders(tmp_path, capsys):
     assert "no frame files" in lines["c"]
     assert (tmp_path / "out" / "a" / "normals.png").is_file()
     assert not (tmp_path / "out" / "c").exists()
+
+
+def test_batch_sharded_over_two_host_devices():
+    """The sharded path (several devices) equals single calls; two CPU devices are forced in a
+    fresh interpreter, since the device count is fixed when JAX starts."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    script = """
+import sys
+import numpy as np, jax, jaxps
+from helpers import face_scene
+assert jax.device_count() == 2, jax.devices()
+sc = face_scene(32)
+imgs = np.stack([np.asarray(face_scene(32, noise=0.01, seed=i).images) for i in range(3)])
+b = jaxps.photometric_stereo_batch(imgs, sc.lights, mask=sc.mask)
+for i in range(3):
+    s = jaxps.photometric_stereo(imgs[i], sc.lights, mask=sc.mask)
+    np.testing.assert_allclose(b.normals[i], s.normals, atol=2e-5)
+    np.testing.assert_array_equal(b.status[i], s.status)
+print("OK")
+"""
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2",
+           "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), str(ROOT / "tests")])}
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                          text=True, timeout=300)
+    assert proc.returncode == 0 and "OK" in proc.stdout, proc.stdout + proc.stderr[-2000:]
