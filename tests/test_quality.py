@@ -87,3 +87,17 @@ def test_yaleb_interlaced_frames_flagged(data):
     report = jaxps.check_frames(frames.astype(np.float32) / 255, names=names)
     assert [c.name for c in report.flagged] == names[1:3]
     assert all("interlace" in c.reasons[0] for c in report.flagged)
+
+
+def test_load_capture_check_quality_drops_and_logs(data, caplog):
+    from jaxps.acquisition import load_capture
+
+    folder = data / "yaleb" / "yaleB02"
+    names = ["yaleB02_P00A+000E+00.pgm", "yaleB02_P00A+020E+10.pgm", "yaleB02_P00A-020E+10.pgm",
+             "yaleB02_P00A+020E-10.pgm", "yaleB02_P00A-020E-10.pgm"]
+    with caplog.at_level("WARNING", logger="jaxps"):
+        cap = load_capture([folder / n for n in names], yale_names=True,
+                           ambient=folder / "yaleB02_P00_Ambient.pgm", check_quality=True)
+    assert cap.names == tuple(n for n in names if n != "yaleB02_P00A+020E-10.pgm")
+    assert cap.images.shape[0] == 4 and cap.lights.shape == (4, 3)
+    assert "yaleB02_P00A+020E-10.pgm: row/interlace" in caplog.text
