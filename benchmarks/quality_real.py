@@ -25,7 +25,8 @@ def main():
         files = {p.name: jaxps.check_file(p) for p in paths}
         frames = np.stack([cv2.imread(str(p), cv2.IMREAD_UNCHANGED) for p in paths])
         report = jaxps.check_frames(frames.astype(np.float32) / 255, names=[p.name for p in paths])
-        out[subject] = {"frames": len(paths), "file_problems": {k: v for k, v in files.items() if v},
+        out[subject] = {"frames": len(paths),
+                        "file_problems": {k: v for k, v in files.items() if v},
                         "flagged": {f.name: list(f.reasons) for f in report.flagged}}
         print(subject, report.summary())
     for obj in ("chrome", "cat", "owl"):

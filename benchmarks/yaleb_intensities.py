@@ -1,7 +1,8 @@
 """Per-frame light intensities on the real Yale B faces: none vs mean equalisation vs frontal vs
 semi-calibrated, for two five-light sets, against references from every light within 50 degrees.
 
-Run: `PYTHONPATH=src python benchmarks/yaleb_intensities.py` -> benchmarks/results/yaleb_intensities.json
+Run: `PYTHONPATH=src python benchmarks/yaleb_intensities.py`
+-> benchmarks/results/yaleb_intensities.json
 """
 
 from __future__ import annotations

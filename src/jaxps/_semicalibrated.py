@@ -1,10 +1,11 @@
-"""Semi-calibrated photometric stereo: per-frame light intensities estimated with albedo and normals.
+"""Semi-calibrated photometric stereo: per-frame light intensities fitted with albedo and normals.
 
 Light directions are known, but each frame's light *intensity* $e_k$ is not (a flash that fires a
 little brighter or dimmer each time). Lambert's law becomes $i_{kp} = e_k\\, l_k \\cdot b_p$ with
 $b_p = \\rho_p n_p$. We solve
 
-$$\\min_{e}\\ \\frac{\\sum_{k,p} w_{kp} (i_{kp} - e_k\\, l_k \\cdot b_p(e))^2}{\\sum_{k,p} w_{kp} i_{kp}^2}
+$$\\min_{e}\\ \\frac{\\sum_{k,p} w_{kp} (i_{kp} - e_k\\, l_k \\cdot b_p(e))^2}
+       {\\sum_{k,p} w_{kp} i_{kp}^2}
   + \\lambda \\sum_k (\\log e_k - \\log e^0_k)^2,$$
 
 where $b_p(e)$ is the per-pixel weighted least-squares solution for fixed intensities (variable
@@ -22,7 +23,8 @@ returned with geometric mean 1 ($\\prod_k e_k = 1$); albedo is then relative to 
 
 **Frontal estimate** (`intensity_estimate(..., method="frontal")`): with no shadows, the mean of
 frame $k$ over the face is $\\bar i_k = e_k\\, l_k \\cdot \\bar b$; taking the mean face normal
-$\\bar b$ along the view axis (a face looking at the camera) gives $e_k \\propto \\bar i_k / l_{k,z}$.
+$\\bar b$ along the view axis (a face looking at the camera) gives
+$e_k \\propto \\bar i_k / l_{k,z}$.
 This is the face scanners' mean-intensity equalisation corrected for each light's obliquity.
 """
 
