@@ -1,6 +1,6 @@
 """Captures per second at 1280x1024x5 (L2, batched) and the semi-calibrated solver's time.
 
-Run: `OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_batch.py`
+Run: `OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_batch.py [--quick]`
 -> benchmarks/results/batch.json and batch.png. Baseline in the same run: N single calls.
 """
 
@@ -10,6 +10,7 @@ import json
 import os
 import pathlib
 import platform
+import sys
 import time
 
 import jax
@@ -22,7 +23,9 @@ import numpy as np  # noqa: E402
 import jaxps  # noqa: E402
 
 OUT = pathlib.Path(__file__).resolve().parent / "results"
-H, W, K, N = 1024, 1280, 5, int(os.environ.get("BENCH_N", 4))
+QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
+# --quick (used by `python -m benchmarks --quick`): 256x320, for a smoke run, marked in the JSON.
+H, W, K, N = (256, 320, 5, 2) if QUICK else (1024, 1280, 5, 4)
 
 
 def timed(fn, repeats=2):
@@ -49,7 +52,7 @@ def main():
     res = {"device": str(jax.devices()[0]), "device_count": jax.device_count(),
            "platform": platform.processor() or platform.machine(),
            "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
-           "shape": [N, K, H, W]}
+           "shape": [N, K, H, W], "quick": QUICK}
     first, run = timed(lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=2))
     res["batch_l2"] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run}
     first, run = timed(lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=2,
