@@ -14,6 +14,7 @@ from ._brdf import (
 from ._brdf_features import FEATURE_NAMES, brdf_features
 from ._brdf_ps import brdf_photometric_stereo
 from ._calibration import ChromeCalibration, lights_from_chrome, load_psm, sphere_from_mask
+from ._batched_lm import BatchedLM
 from ._integrate import (
     INTEGRATION_METHODS,
     IntegrationResult,
@@ -25,6 +26,15 @@ from ._integrate import (
 from ._lights import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ._l2 import PSResult
 from ._near import NearResult, near_light_field, near_photometric_stereo, surface_points
+from ._lambertian_check import LambertianCheck, lambertian_check, plot_lambertian_check
+from ._model_choice import ModelChoice, compare_models
+from ._oren_nayar import (
+    OREN_NAYAR_FORMS,
+    RoughnessFit,
+    fit_roughness,
+    oren_nayar,
+    render_oren_nayar,
+)
 from ._ps import PS_METHODS, photometric_stereo
 from ._render import angular_error, render_lambertian
 from ._status import Status, status_counts
@@ -35,23 +45,31 @@ __all__ = [
     "BRDFFit",
     "BRDFModel",
     "BRDF_METHODS",
+    "BatchedLM",
     "ChromeCalibration",
     "FEATURE_NAMES",
     "INTEGRATION_METHODS",
     "IntegrationResult",
+    "LambertianCheck",
+    "ModelChoice",
     "NearResult",
+    "OREN_NAYAR_FORMS",
     "PSResult",
     "PS_METHODS",
+    "RoughnessFit",
     "Status",
     "angular_error",
     "brdf_features",
     "brdf_photometric_stereo",
+    "compare_models",
     "evaluate",
     "extrapolation_mask",
     "fit_brdf",
+    "fit_roughness",
     "gradients_from_normals",
     "integrability_map",
     "integrate",
+    "lambertian_check",
     "lights_from_angles",
     "lights_from_chrome",
     "load_lights",
@@ -59,10 +77,13 @@ __all__ = [
     "near_light_field",
     "near_photometric_stereo",
     "normals_from_height",
+    "oren_nayar",
     "parse_yale_name",
     "photometric_stereo",
+    "plot_lambertian_check",
     "relight",
     "render_lambertian",
+    "render_oren_nayar",
     "sphere_from_mask",
     "stability",
     "status_counts",

@@ -245,7 +245,7 @@ def _pixel_albedo(i, w, f, rho_given, refit):
 def _basis(cos_i, cos_r, p, form):
     """Per-sample geometry the model needs, precomputed once for fixed normals.
 
-    Qualitative: $f = A c + B g$ with $c = \max(c_i, 0)$ and $g = c\,\max(P, 0)/\max(c_i, c_r)$,
+    Qualitative: $f = A c + B g$ with $c = \\max(c_i, 0)$ and $g = c\\,\\max(P, 0)/\\max(c_i, c_r)$,
     linear in $(A, B)$. Full: the raw $(c_i, c_r, P)$. All leaves `(K, N)` or `(1, N)`.
     """
     if form == "qualitative":
@@ -258,7 +258,7 @@ def _basis(cos_i, cos_r, p, form):
 
 
 def _model(s, geo, form):
-    """$f$ from the precomputed `_basis` and $s = \sigma^2$ (broadcast against the leaves)."""
+    """$f$ from the precomputed `_basis` and $s = \\sigma^2$ (broadcast against the leaves)."""
     if form == "qualitative":
         a, b, _ = _coefficients(s, form)
         c, g = geo
@@ -268,7 +268,7 @@ def _model(s, geo, form):
 
 
 def _residuals(s, data, form, refit):
-    """Weighted residuals $w (I - \rho f)$. `data` = (i, w, geo, rho), arrays `(K, N)`, rho `(N,)`."""
+    """Weighted residuals $w (I - \\rho f)$; `data` = (i, w, geo, rho), `(K, N)` and `(N,)`."""
     i, w, geo, rho_given = data
     f = _model(s.astype(i.dtype), geo, form)
     rho = _pixel_albedo(i, w, f, rho_given, refit)
@@ -276,7 +276,7 @@ def _residuals(s, data, form, refit):
 
 
 def _s_from_ratio(t):
-    """Invert $t = B(s) / A(s)$ of the qualitative model for $s \ge 0$ ($t \in [0, 0.9)$).
+    """Invert $t = B(s) / A(s)$ of the qualitative model for $s \\ge 0$ ($t \\in [0, 0.9)$).
 
     $(0.45 - 0.5t)s^2 + (0.1485 - 0.375t)s - 0.0297t = 0$, positive root.
     """
@@ -288,9 +288,9 @@ def _s_from_ratio(t):
 
 
 def _linear_start(data):
-    """Per-pixel $s$ from the qualitative model as a linear fit $I \approx \rho' c + u g$.
+    """Per-pixel $s$ from the qualitative model as a linear fit $I \\approx \\rho' c + u g$.
 
-    With the albedo free, $\rho A c + \rho B g$ is linear in $(\rho A, \rho B)$: a 2x2 solve
+    With the albedo free, $\\rho A c + \\rho B g$ is linear in $(\\rho A, \\rho B)$: a 2x2 solve
     per pixel, whose ratio $t = B/A$ gives $s$ in closed form. Used to start the per-pixel LM.
     """
     i, w, (c, g), _ = data
@@ -306,7 +306,7 @@ def _linear_start(data):
 
 
 def _solve_one(data, s0, s_max, form, refit, solver, max_steps, min_samples):
-    """Fit one $s = \sigma^2$ to the samples in `data` (weights zero for unused samples)."""
+    """Fit one $s = \\sigma^2$ to the samples in `data` (weights zero for unused samples)."""
     i, w = data[0], data[1]
     dtype = i.dtype
     n = jnp.sum(w > 0)
