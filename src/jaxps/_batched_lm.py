@@ -1,4 +1,4 @@
-"""A batched Levenberg–Marquardt for many tiny, independent least-squares problems (one per pixel).
+"""A batched Levenberg–Marquardt for many tiny independent least-squares problems (one per pixel).
 
 `optimistix.least_squares` under `jax.vmap` is exact but slow for a million 1-4 parameter
 problems on a CPU (a batched while-loop around a batched QR: ~150 us per pixel here). This

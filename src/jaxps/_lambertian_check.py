@@ -64,7 +64,7 @@ def lambertian_check(
     sigma: float | None = None,
     form: str = "qualitative",
 ) -> LambertianCheck:
-    """Bin $I/\\rho$ against $\\theta = \\angle(n, l)$ and compare with $\\cos\\theta$ (Hansen 2010).
+    """Bin $I/\\rho$ against $\\theta = \\angle(n, l)$ vs. $\\cos\\theta$ (Hansen et al.).
 
     **Arguments:**
     - `images`: `(K, H, W)` grey, linear (ambient already subtracted).
@@ -159,7 +159,7 @@ def plot_lambertian_check(result: LambertianCheck, *, ax=None, title: str | None
     ax.set_ylim(0, 1.3)
     ax.set_xlabel("θ (degrees)")
     ax.set_ylabel("I / ρ")
-    ax.set_title(title or f"RMS vs cos: {result.rms_60:.3f} (θ≤60°), {result.rms_all:.3f} (all)",
-                 fontsize=9)
+    default = f"RMS vs cos: {result.rms_60:.3f} (θ≤60°), {result.rms_all:.3f} (all)"
+    ax.set_title(title or default, fontsize=9)
     ax.legend(fontsize=7, loc="upper right")
     return fig

@@ -1,4 +1,4 @@
-"""Model choice, "no more than a scene needs": Lambertian or Oren–Nayar, judged on held-out lights.
+"""Model choice, "no more than a scene needs": Lambertian or Oren–Nayar, judged on held-out light.
 
 Both models are fitted on the training lights (`l2` photometric stereo; Oren–Nayar-aware
 photometric stereo with one global roughness, and optionally one roughness per region), the

@@ -13,15 +13,16 @@ the radiance is $I = \\rho\\, f(\\theta_i, \\theta_r, \\Delta\\phi; \\sigma)$ wi
   $f = \\cos\\theta_i\\,(C_1 + \\cos\\Delta\\phi\\, C_2 \\tan\\beta
   + (1 - |\\cos\\Delta\\phi|)\\, C_3 \\tan\\tfrac{\\alpha+\\beta}{2})$,
 
-where $\\alpha = \\max(\\theta_i, \\theta_r)$, $\\beta = \\min(\\theta_i, \\theta_r)$ and $\\Delta\\phi$
-is the azimuth between the light and view directions in the tangent plane. $\\sigma = 0$ gives
-Lambert's law exactly; $f = 0$ for $\\theta_i \\ge 90°$ (attached shadow).
+where $\\alpha = \\max(\\theta_i, \\theta_r)$, $\\beta = \\min(\\theta_i, \\theta_r)$ and
+$\\Delta\\phi$ is the azimuth between the light and view directions in the tangent plane.
+$\\sigma = 0$ gives Lambert's law exactly; $f = 0$ for $\\theta_i \\ge 90°$ (attached shadow).
 
 The view direction is the camera axis $v = (0, 0, 1)$ (orthographic camera, DESIGN.md). In
 vector form, with $c_i = n \\cdot l$, $c_r = n \\cdot v$ and
-$P = \\cos\\Delta\\phi \\sin\\theta_i \\sin\\theta_r = l \\cdot v - c_i c_r$, the qualitative term is
-$\\max(0,\\cos\\Delta\\phi)\\sin\\alpha\\tan\\beta = \\max(0, P) / \\max(c_i, c_r)$: smooth in the
-normal, with no `arccos`, which is how the fitting code evaluates it.
+$P = \\cos\\Delta\\phi \\sin\\theta_i \\sin\\theta_r = l \\cdot v - c_i c_r$, the qualitative
+term is $\\max(0,\\cos\\Delta\\phi)\\sin\\alpha\\tan\\beta =
+\\max(0, P) / \\max(c_i, c_r)$: smooth in the normal, with no `arccos`,
+which is how the fitting code evaluates it.
 
 Fitting works in $s = \\sigma^2$: $\\partial f / \\partial \\sigma = 0$ at $\\sigma = 0$, so a
 Lambertian start would be a stationary point in $\\sigma$ but is not one in $s$. The fitted $s$
@@ -69,7 +70,8 @@ def _coefficients(s, form):
 
 
 def _shading(cos_i, cos_r, p, s, form="qualitative"):
-    """$f = I / \\rho$ from $c_i = n\\cdot l$, $c_r = n \\cdot v$, $P = l\\cdot v - c_i c_r$ and $s=\\sigma^2$.
+    """$f = I / \\rho$ from $c_i = n \\cdot l$, $c_r = n \\cdot v$, $P = l \\cdot v - c_i c_r$
+    and $s = \\sigma^2$.
 
     Elementwise and broadcastable; zero where $c_i \\le 0$. Safe (finite value and gradient)
     at normal incidence, grazing angles and $\\sigma = 0$.
@@ -232,7 +234,7 @@ def default_solver(dtype=jnp.float32) -> optx.LevenbergMarquardt:
 
 
 def _pixel_albedo(i, w, f, rho_given, refit):
-    """Closed-form albedo $\\rho = \\sum w I f / \\sum w f^2$ (variable projection) or the given one.
+    """Closed-form albedo $\\rho = \\sum w I f / \\sum w f^2$ (variable projection) or the given.
 
     `i`, `w`, `f` share a leading sample axis `K`.
     """
