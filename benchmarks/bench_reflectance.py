@@ -165,7 +165,7 @@ def synthetic_accuracy():
     return rows
 
 
-def _time(fn, repeats=3):
+def _time(fn, repeats=1):
     t0 = time.perf_counter()
     jax.block_until_ready(fn())
     first = time.perf_counter() - t0
@@ -174,7 +174,9 @@ def _time(fn, repeats=3):
         t0 = time.perf_counter()
         jax.block_until_ready(fn())
         runs.append(time.perf_counter() - t0)
-    return {"first_call_s": first, "run_s_min": min(runs), "run_s_median": float(np.median(runs))}
+    out = {"first_call_s": first, "run_s_min": min(runs), "run_s_median": float(np.median(runs))}
+    print(out, flush=True)
+    return out
 
 
 def speed(size):
