@@ -14,7 +14,11 @@ from ._brdf import (
 from ._brdf_features import FEATURE_NAMES, brdf_features
 from ._brdf_ps import brdf_photometric_stereo
 from ._calibration import ChromeCalibration, lights_from_chrome, load_psm, sphere_from_mask
+<<<<<<< HEAD
 from ._batch import photometric_stereo_batch, reconstruct_many, summary_table
+=======
+from ._batched_lm import BatchedLM
+>>>>>>> issue-5
 from ._integrate import (
     INTEGRATION_METHODS,
     IntegrationResult,
@@ -26,6 +30,15 @@ from ._integrate import (
 from ._lights import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ._l2 import PSResult
 from ._near import NearResult, near_light_field, near_photometric_stereo, surface_points
+from ._lambertian_check import LambertianCheck, lambertian_check, plot_lambertian_check
+from ._model_choice import ModelChoice, compare_models
+from ._oren_nayar import (
+    OREN_NAYAR_FORMS,
+    RoughnessFit,
+    fit_roughness,
+    oren_nayar,
+    render_oren_nayar,
+)
 from ._ps import PS_METHODS, photometric_stereo
 from ._semicalibrated import INTENSITY_METHODS, intensity_estimate
 from ._quality import (
@@ -46,33 +59,50 @@ __all__ = [
     "BRDFFit",
     "BRDFModel",
     "BRDF_METHODS",
+    "BatchedLM",
     "ChromeCalibration",
     "FEATURE_NAMES",
     "FrameCheck",
     "INTENSITY_METHODS",
     "INTEGRATION_METHODS",
     "IntegrationResult",
+    "LambertianCheck",
+    "ModelChoice",
     "NearResult",
+    "OREN_NAYAR_FORMS",
     "PSResult",
     "PS_METHODS",
+<<<<<<< HEAD
     "QualityReport",
     "QualityThresholds",
     "Registration",
+=======
+    "RoughnessFit",
+>>>>>>> issue-5
     "Status",
     "angular_error",
     "brdf_features",
     "brdf_photometric_stereo",
+<<<<<<< HEAD
     "check_file",
     "check_frames",
     "drop_flagged",
     "estimate_shifts",
+=======
+    "compare_models",
+>>>>>>> issue-5
     "evaluate",
     "extrapolation_mask",
     "fit_brdf",
+    "fit_roughness",
     "gradients_from_normals",
     "integrability_map",
     "integrate",
+<<<<<<< HEAD
     "intensity_estimate",
+=======
+    "lambertian_check",
+>>>>>>> issue-5
     "lights_from_angles",
     "lights_from_chrome",
     "load_lights",
@@ -80,13 +110,16 @@ __all__ = [
     "near_light_field",
     "near_photometric_stereo",
     "normals_from_height",
+    "oren_nayar",
     "parse_yale_name",
     "photometric_stereo",
+    "plot_lambertian_check",
     "relight",
     "photometric_stereo_batch",
     "reconstruct_many",
     "register_frames",
     "render_lambertian",
+    "render_oren_nayar",
     "sphere_from_mask",
     "stability",
     "shift_frames",

@@ -15,6 +15,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ._l2 import PSResult, ps_l2
 from ._lights import validate_lights
+from ._oren_nayar_ps import ps_oren_nayar
 from ._robust import ps_barsky, ps_irls, ps_sbl
 from ._semicalibrated import ps_semi_calibrated
 
@@ -25,7 +26,11 @@ _SOLVERS = {
     "barsky": ps_barsky,
     "irls": ps_irls,
     "sbl": ps_sbl,
+<<<<<<< HEAD
     "semi_calibrated": ps_semi_calibrated,
+=======
+    "oren_nayar": ps_oren_nayar,
+>>>>>>> issue-5
 }
 PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
 
