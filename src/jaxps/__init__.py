@@ -14,11 +14,8 @@ from ._brdf import (
 from ._brdf_features import FEATURE_NAMES, brdf_features
 from ._brdf_ps import brdf_photometric_stereo
 from ._calibration import ChromeCalibration, lights_from_chrome, load_psm, sphere_from_mask
-<<<<<<< HEAD
 from ._batch import photometric_stereo_batch, reconstruct_many, summary_table
-=======
 from ._batched_lm import BatchedLM
->>>>>>> issue-5
 from ._integrate import (
     INTEGRATION_METHODS,
     IntegrationResult,
@@ -72,25 +69,19 @@ __all__ = [
     "OREN_NAYAR_FORMS",
     "PSResult",
     "PS_METHODS",
-<<<<<<< HEAD
     "QualityReport",
     "QualityThresholds",
     "Registration",
-=======
     "RoughnessFit",
->>>>>>> issue-5
     "Status",
     "angular_error",
     "brdf_features",
     "brdf_photometric_stereo",
-<<<<<<< HEAD
     "check_file",
     "check_frames",
     "drop_flagged",
     "estimate_shifts",
-=======
     "compare_models",
->>>>>>> issue-5
     "evaluate",
     "extrapolation_mask",
     "fit_brdf",
@@ -98,11 +89,8 @@ __all__ = [
     "gradients_from_normals",
     "integrability_map",
     "integrate",
-<<<<<<< HEAD
     "intensity_estimate",
-=======
     "lambertian_check",
->>>>>>> issue-5
     "lights_from_angles",
     "lights_from_chrome",
     "load_lights",

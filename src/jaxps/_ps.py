@@ -26,11 +26,8 @@ _SOLVERS = {
     "barsky": ps_barsky,
     "irls": ps_irls,
     "sbl": ps_sbl,
-<<<<<<< HEAD
     "semi_calibrated": ps_semi_calibrated,
-=======
     "oren_nayar": ps_oren_nayar,
->>>>>>> issue-5
 }
 PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
 

@@ -24,6 +24,7 @@ from .evaluate import angular_stats
 
 __all__ = [
     "Corrupted",
+    "ROBUST_SWEEP_METHODS",
     "SWEEPS",
     "cast_shadow_mask",
     "perturb_lights",
@@ -188,6 +189,8 @@ def render_corrupted(
     return Corrupted(images, lights, n, albedo, mask, shadow, jnp.where(mask[None], spec, 0))
 
 
+ROBUST_SWEEP_METHODS: tuple[str, ...] = ("l2", "barsky", "irls", "sbl")
+
 SWEEPS: dict[str, tuple[float, ...]] = {
     "noise": (0.0, 0.005, 0.01, 0.02, 0.05),
     "n_lights": (3, 4, 5, 6, 8, 10, 12),
@@ -266,7 +269,9 @@ def sweep(
 
     **Arguments:**
     - `name`: a key of `SWEEPS`; `values` default to its values.
-    - `methods`: `photometric_stereo` methods (default all of `jaxps.PS_METHODS`).
+    - `methods`: `photometric_stereo` methods (default `ROBUST_SWEEP_METHODS`: L2 and the
+      robust solvers; the reflectance-aware and semi-calibrated solvers answer other questions
+      and are far slower).
     - `h`: image height of the `face_like` scene.
     - `key`: PRNG key for noise and light perturbations (default `jax.random.key(0)`).
 
@@ -275,13 +280,12 @@ def sweep(
     `median_deg`, `mean_deg`, `p95_deg` (over the object), `ok_fraction` (status OK) and
     `nonfinite` (count of NaN/Inf outputs, which must be 0).
     """
-    from ._ps import PS_METHODS
     from ._near import near_photometric_stereo
 
     if name not in SWEEPS:
         raise ValueError(f"name must be one of {tuple(SWEEPS)}, got {name!r}")
     values = SWEEPS[name] if values is None else tuple(values)
-    methods = PS_METHODS if methods is None else tuple(methods)
+    methods = ROBUST_SWEEP_METHODS if methods is None else tuple(methods)
     key = jax.random.key(0) if key is None else key
     names = list(methods) + (["near-l2"] if name == "near_distance_mm" else [])
     out = {"name": name, "values": list(values), "h": h, "scene": [],
