@@ -19,7 +19,7 @@ from jaxtyping import Array, Float, Int
 
 from ._status import Status
 
-__all__ = ["PSResult", "ps_l2", "solve3"]
+__all__ = ["PSResult", "first_status", "ps_l2", "solve3"]
 
 # det(A) / (trace(A)/3)^3 below this marks the usable lights as not spanning 3-D
 # (roughly a light-matrix condition number above 1e3).
@@ -44,6 +44,18 @@ class PSResult(NamedTuple):
     n_used: Int[Array, "H W"]
     residual: Float[Array, "H W"]
     info: dict | None = None
+
+
+def first_status(cases) -> Array:
+    """The code of the first true condition in `[(condition, code), ...]`, else `Status.OK`.
+
+    Nested `jnp.where` rather than `jnp.select`: under `vmap`, `select` stacks the conditions
+    along a small minor axis and reduces over it, which is several times slower on XLA-CPU.
+    """
+    status = jnp.int32(Status.OK)
+    for condition, code in reversed(cases):
+        status = jnp.where(condition, jnp.int32(code), status)
+    return status
 
 
 def solve3(a, r) -> tuple[Array, Array]:
@@ -75,16 +87,19 @@ def solve3(a, r) -> tuple[Array, Array]:
     return jnp.stack(x), rel_det
 
 
-def _pixel_l2(i, usable, lights, pinv, thresholds, weighted):
-    """Solve one pixel. `i` is `(K, C)` (C=1 for grey), `usable` `(K,)` bool, `lights` `(K, 3)`.
+def _pixel_l2(i, usable, inside, lights, pinv, thresholds, weighted):
+    """Solve one pixel. `i` is `(K, C)` (C=1 for grey), `usable` `(K,)` bool, `inside` the
+    pixel's mask bit, `lights` `(K, 3)`.
 
     `pinv` is the shared `(3, K)` pseudo-inverse (None for per-pixel lights), used when every
-    sample is usable; with
-    `weighted=False` (static) it is used for every pixel and the per-pixel normal equations are
-    skipped (the caller checks that no pixel needs them). `thresholds` = (dark, saturation,
-    shadow) as traced scalars. Sums over
-    the K samples and 3 axes are unrolled in Python (K is static and small) so that, once
-    vmapped, every operation is elementwise over pixels (see `solve3`).
+    sample is usable. With `weighted=False` (static) it is used for every pixel and the
+    per-pixel normal equations are skipped; the last output says whether this pixel dropped a
+    sample and so needs the weighted solve. `thresholds` = (dark, saturation, shadow) as traced
+    scalars. Sums over the K samples and 3 axes are unrolled in Python (K is static and small)
+    so that, once vmapped, every operation is elementwise over pixels (see `solve3`).
+
+    Returns the final (normal, albedo, status, n_used, residual, needs_weights): failed and
+    masked pixels already carry their status and the defaults normal (0, 0, 1), albedo 0.
     """
     dark, saturation, shadow = thresholds
     dtype = i.dtype
@@ -131,21 +146,21 @@ def _pixel_l2(i, usable, lights, pinv, thresholds, weighted):
     n_finite = sum(f.astype(jnp.int32) for f in finite)
     brightest = functools.reduce(jnp.maximum, [jnp.where(finite[k], grey[k], -jnp.inf)
                                                for k in ks])
-    status = jnp.select(
-        [
-            n_finite < 3,
-            brightest <= dark,
-            sum(u.astype(jnp.int32) for u in unsat) < 3,
-            n_used < 3,
-            rel_det < _REL_DET_MIN,
-            ~(rho_grey > 0),
-            n[2] < 0,
-        ],
-        [Status.INVALID, Status.DARK, Status.SATURATED, Status.TOO_FEW_LIGHTS,
-         Status.DEGENERATE, Status.DARK, Status.BACKFACING],
-        Status.OK,
-    )
-    return jnp.stack(n), rho, status, n_used, residual
+    status = first_status([
+        (~inside, Status.MASKED),
+        (n_finite < 3, Status.INVALID),
+        (brightest <= dark, Status.DARK),
+        (sum(u.astype(jnp.int32) for u in unsat) < 3, Status.SATURATED),
+        (n_used < 3, Status.TOO_FEW_LIGHTS),
+        (rel_det < _REL_DET_MIN, Status.DEGENERATE),
+        (~(rho_grey > 0), Status.DARK),
+        (n[2] < 0, Status.BACKFACING),
+    ])
+    ok = status == Status.OK
+    normal = jnp.stack([jnp.where(ok, n[0], 0), jnp.where(ok, n[1], 0), jnp.where(ok, n[2], 1)])
+    needs_weights = inside & ~functools.reduce(jnp.logical_and, used)
+    return (normal, jnp.where(ok, rho, 0), status, n_used, jnp.where(ok, residual, 0),
+            needs_weights)
 
 
 @jax.jit
@@ -154,6 +169,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds):
     k, h, w, c = images.shape
     flat = images.reshape(k, h * w, c)
     usable = sample_mask.reshape(k, h * w)
+    inside = mask.reshape(h * w)
     shared = lights.ndim == 2
     if shared:
         pinv = jnp.linalg.pinv(lights)
@@ -163,32 +179,21 @@ def ps_l2(images, lights, mask, sample_mask, thresholds):
         lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
         pinv = None
         light_axis = 1
+
     def solve(weighted):
         kernel = jax.vmap(functools.partial(_pixel_l2, weighted=weighted),
-                          in_axes=(1, 1, light_axis, None, None))
-        return lambda: kernel(flat, usable, lights, pinv, thresholds)
+                          in_axes=(1, 1, 0, light_axis, None, None))
+        return kernel(flat, usable, inside, lights, pinv, thresholds)[:5]
 
     if shared:
-        # Most captures have no pixel that drops a sample: then skip the per-pixel solves.
-        dark, saturation, shadow = thresholds
-        grey = jnp.mean(flat, axis=-1)
-        clean = (jnp.all(usable) & jnp.all(jnp.isfinite(flat)) & jnp.all(flat < saturation)
-                 & jnp.all(grey >= shadow))
-        n, rho, status, n_used, residual = jax.lax.cond(clean, solve(False), solve(True))
+        # Most captures have no pixel that drops a sample: the cheap pass with the shared
+        # pseudo-inverse is then the answer, and the per-pixel normal equations are skipped.
+        *fast, needs_weights = jax.vmap(
+            functools.partial(_pixel_l2, weighted=False),
+            in_axes=(1, 1, 0, None, None, None))(flat, usable, inside, lights, pinv, thresholds)
+        out = jax.lax.cond(jnp.any(needs_weights), lambda: solve(True), lambda: tuple(fast))
     else:
-        n, rho, status, n_used, residual = solve(True)()
-
-    keep = mask.reshape(-1) & (status == Status.OK)
-    status = jnp.where(mask.reshape(-1), status, Status.MASKED).astype(jnp.int32)
-    normals = jnp.where(keep[:, None], n, jnp.array([0, 0, 1], images.dtype))
-    albedo = jnp.where(keep[:, None], rho, 0)
-    residual = jnp.where(keep, residual, 0)
-    return PSResult(
-        normals.reshape(h, w, 3),
-        albedo.reshape(h, w, c),
-        status.reshape(h, w),
-        n_used.astype(jnp.int32).reshape(h, w),
-        residual.reshape(h, w),
-    )
-
-
+        out = solve(True)
+    normals, albedo, status, n_used, residual = out
+    return PSResult(normals.reshape(h, w, 3), albedo.reshape(h, w, c), status.reshape(h, w),
+                    n_used.reshape(h, w), residual.reshape(h, w))

@@ -8,6 +8,8 @@ bool, `sample_mask` `(K, H, W)` bool and `thresholds` = (dark, saturation, shado
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,6 +32,9 @@ _SOLVERS = {
     "oren_nayar": ps_oren_nayar,
 }
 PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
+# Solvers that check their options on concrete values (and jit their own cores) are called
+# outside the wrapper's jit.
+_EAGER_SOLVERS = frozenset({"semi_calibrated", "oren_nayar"})
 
 
 def _check_images(images) -> tuple[jax.Array, bool]:
@@ -90,12 +95,7 @@ def photometric_stereo(
     if method not in PS_METHODS:
         raise ValueError(f"method must be one of {PS_METHODS}, got {method!r}")
     images, grey = _check_images(images)
-    if grey:
-        images = images[..., None]
-    k, h, w, _ = images.shape
-    dtype = images.dtype if images.dtype != jnp.float16 else jnp.float32
-    out_dtype = images.dtype
-    images = images.astype(dtype)
+    k, h, w = images.shape[:3]
 
     lights_shape = np.shape(lights)
     if len(lights_shape) == 2:
@@ -112,30 +112,51 @@ def photometric_stereo(
         raise ValueError(f"images have K={k} frames but lights have {lights_shape[0]} rows")
     if k < 3:
         raise ValueError(f"photometric stereo needs at least 3 images, got K={k}")
-    lights = jnp.asarray(lights, dtype)
-
-    if mask is None:
-        mask = jnp.ones((h, w), bool)
-    elif np.shape(mask) != (h, w):
+    if mask is not None and np.shape(mask) != (h, w):
         raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {np.shape(mask)}")
-    if sample_mask is None:
-        sample_mask = jnp.ones((k, h, w), bool)
-    elif np.shape(sample_mask) != (k, h, w):
+    if sample_mask is not None and np.shape(sample_mask) != (k, h, w):
         raise ValueError(
             f"sample_mask must have shape (K, H, W) = {(k, h, w)}, got {np.shape(sample_mask)}"
         )
     for name, value in (("saturation", saturation), ("dark_threshold", dark_threshold)):
         if not np.isfinite(value):
             raise ValueError(f"{name} must be finite, got {value}")
-    thresholds = tuple(
-        jnp.asarray(v, dtype)
-        for v in (dark_threshold, saturation, -np.inf if shadow_threshold is None
-                  else shadow_threshold)
-    )
-    res = _SOLVERS[method](
-        images, lights, jnp.asarray(mask, bool), jnp.asarray(sample_mask, bool), thresholds,
-        **options,
-    )
+    thresholds = (dark_threshold, saturation,
+                  -np.inf if shadow_threshold is None else shadow_threshold)
+
+    # Arrays in `options` are traced; everything else (step limits, loss names, solver
+    # objects) is static. Unhashable options fall back to running the wrapper eagerly.
+    dynamic = {k: v for k, v in options.items() if isinstance(v, (jax.Array, np.ndarray))}
+    static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
+    try:
+        hash(static)
+        run = _run.__wrapped__ if method in _EAGER_SOLVERS else _run
+    except TypeError:
+        run = _run.__wrapped__
+    return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
+               static=static)
+
+
+@functools.partial(jax.jit, static_argnames=("method", "static"))
+def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, static):
+    """Casts, default masks and the grey channel axis, inside one jit with the solver.
+
+    Done here rather than eagerly so that no full-size temporary (an all-true mask, an
+    expanded or sliced copy of the stack) is written to memory: XLA fuses them away.
+    """
+    out_dtype = images.dtype
+    dtype = jnp.float32 if images.dtype == jnp.float16 else images.dtype
+    grey = images.ndim == 3
+    images = images.astype(dtype)
+    if grey:
+        images = images[..., None]
+    k, h, w, _ = images.shape
+    mask = jnp.ones((h, w), bool) if mask is None else jnp.asarray(mask, bool)
+    sample_mask = (jnp.ones((k, h, w), bool) if sample_mask is None
+                   else jnp.asarray(sample_mask, bool))
+    thresholds = tuple(jnp.asarray(t, dtype) for t in thresholds)
+    res = _SOLVERS[method](images, jnp.asarray(lights, dtype), mask, sample_mask, thresholds,
+                           **dict(static), **dynamic)
     albedo = res.albedo[..., 0] if grey else res.albedo
     return PSResult(
         res.normals.astype(out_dtype),
