@@ -274,6 +274,15 @@ def _to_height(eta, valid, cam, pixel_size, everywhere):
     return (eta * jnp.asarray(pixel_size, dt)).astype(dt)
 
 
+@jax.jit
+def _fc_orthographic(normals, mask, pixel_size):
+    """`integrate(method="fc")` without intrinsics: height and whether any normal was valid."""
+    n, valid = _unit_normals(normals, mask)
+    p, q = gradients_from_normals(n, mask)
+    eta = _frankot_chellappa(p, q, mask).astype(normals.dtype)
+    return _to_height(eta, mask, None, pixel_size, True), jnp.any(valid)
+
+
 def _auto_choice(n, valid, cam):
     full = bool(jnp.all(valid))
     gc, gr = _height_steps(n, valid, cam)
@@ -380,6 +389,12 @@ def integrate(
     normals, mask = _check_normals(normals, mask)
     dtype = normals.dtype
     cam = _check_intrinsics(intrinsics)
+    if method == "fc" and cam is None and not return_info:
+        # The common case in one jit: no full-size temporaries between the steps.
+        height, any_valid = _fc_orthographic(normals, mask, jnp.asarray(pixel_size, dtype))
+        if not bool(any_valid):
+            raise ValueError("normals has no finite, non-zero normal inside mask")
+        return height
     n, valid = _unit_normals(normals, mask)
     if not bool(jnp.any(valid)):
         raise ValueError("normals has no finite, non-zero normal inside mask")
