@@ -27,7 +27,7 @@ def _add_reconstruct(sub) -> None:
     g.add_argument("--yale-names", action="store_true",
                    help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
     p.add_argument("--ambient", help="ambient-only control frame to subtract")
-    p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (Otsu on the mean)")
+    p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
     p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
     p.add_argument("--equalize", action="store_true",
                    help="equalise mean intensity across frames (four-source scanner)")
