@@ -11,7 +11,6 @@ import os
 import pathlib
 import platform
 import sys
-import time
 
 import jax
 import matplotlib
@@ -28,16 +27,11 @@ QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 H, W, K, N = (256, 320, 5, 2) if QUICK else (1024, 1280, 5, 4)
 
 
-def timed(fn, repeats=2):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        runs.append(time.perf_counter() - t0)
-    return first, min(runs)
+try:
+    from benchmarks._common import timed
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import timed
 
 
 def main():
@@ -53,20 +47,22 @@ def main():
            "platform": platform.processor() or platform.machine(),
            "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
            "shape": [N, K, H, W], "quick": QUICK}
-    first, run = timed(lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=2))
+    _, first, run = timed(lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=2),
+                          repeats=2)
     res["batch_l2"] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run}
-    first, run = timed(lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=2,
-                                                              vmap_size=1))
+    _, first, run = timed(lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=2,
+                                                                 vmap_size=1), repeats=2)
     res["batch_l2_lax_map"] = {"compile_plus_first_s": first, "run_s": run,
                                "captures_per_s": N / run}
-    first, run = timed(lambda: [jaxps.photometric_stereo(c, lights, mask=mask) for c in caps])
+    _, first, run = timed(lambda: [jaxps.photometric_stereo(c, lights, mask=mask) for c in caps],
+                          repeats=2)
     res["single_calls_l2"] = {"compile_plus_first_s": first, "run_s": run,
                               "captures_per_s": N / run}
-    first, run = timed(lambda: jaxps.photometric_stereo(caps[0], lights, mask=mask,
-                                                        method="semi_calibrated"), repeats=1)
+    _, first, run = timed(lambda: jaxps.photometric_stereo(caps[0], lights, mask=mask,
+                                                           method="semi_calibrated"), repeats=1)
     res["semi_calibrated_one_capture"] = {"compile_plus_first_s": first, "run_s": run}
-    first, run = timed(lambda: jaxps.intensity_estimate(caps[0], lights, mask=mask,
-                                                        method="frontal"), repeats=1)
+    _, first, run = timed(lambda: jaxps.intensity_estimate(caps[0], lights, mask=mask,
+                                                           method="frontal"), repeats=1)
     res["frontal_estimate_one_capture"] = {"compile_plus_first_s": first, "run_s": run}
     OUT.mkdir(exist_ok=True)
     (OUT / "batch.json").write_text(json.dumps(res, indent=1))
