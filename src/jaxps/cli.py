@@ -10,6 +10,15 @@ import time
 import numpy as np
 
 
+def _add_light_args(p) -> None:
+    """The options every frame-reading subcommand shares: where lights come from, ambient."""
+    g = p.add_mutually_exclusive_group(required=True)
+    g.add_argument("--lights", help="lights.txt: optional count line, then 'x y z' per frame")
+    g.add_argument("--yale-names", action="store_true",
+                   help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
+    p.add_argument("--ambient", help="ambient-only control frame to subtract")
+
+
 def _add_reconstruct(sub) -> None:
     p = sub.add_parser(
         "reconstruct",
@@ -22,11 +31,7 @@ def _add_reconstruct(sub) -> None:
                    "several folders are several captures (one progress bar, a summary table)")
     p.add_argument("--check-quality", action="store_true",
                    help="drop frames flagged by jaxps.check_frames (several folders only)")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--lights", help="lights.txt: optional count line, then 'x y z' per frame")
-    g.add_argument("--yale-names", action="store_true",
-                   help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
-    p.add_argument("--ambient", help="ambient-only control frame to subtract")
+    _add_light_args(p)
     p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
     p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
     p.add_argument("--equalize", action="store_true",
@@ -84,11 +89,7 @@ def _add_relight(sub) -> None:
         "relight.json (fit report) to --out.",
     )
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
-    g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--lights", help="lights.txt: optional count line, then 'x y z' per frame")
-    g.add_argument("--yale-names", action="store_true",
-                   help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
-    p.add_argument("--ambient", help="ambient-only control frame to subtract")
+    _add_light_args(p)
     p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
     p.add_argument("--method", default="mlp_ratio", help="BRDF model (jaxps.BRDF_METHODS)")
     p.add_argument("--light", action="append", default=[], metavar="AZ,EL",
