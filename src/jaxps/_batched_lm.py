@@ -1,24 +1,37 @@
-"""A batched Levenberg–Marquardt for many tiny independent least-squares problems (one per pixel).
+"""Levenberg–Marquardt for many tiny independent least-squares problems (one per pixel).
 
-`optimistix.least_squares` under `jax.vmap` is exact but slow for a million 1-4 parameter
-problems on a CPU (a batched while-loop around a batched QR: ~150 us per pixel here). This
-solver does the same damped Gauss–Newton iteration (Levenberg 1944, Marquardt 1963) with the
-per-pixel normal equations solved in closed form (P <= 3, written out elementwise so the whole
-image step fuses), a damping factor per pixel, box bounds by projection, a step limit and a
-per-pixel converged flag. It is passed as an object like any optimistix solver.
+`optimistix.least_squares` under `jax.vmap` is exact but slow for a million 1-3 parameter
+problems on a CPU (a batched while-loop around a batched QR: ~75 us per pixel here,
+`benchmarks/bench_reflectance.py`). `lm_pixel` is the same damped Gauss–Newton iteration
+(Levenberg 1944, Marquardt 1963) written for one pixel with every sum unrolled: the P x P
+normal equations are solved by cofactors (P <= 3), the Jacobian comes from P `jax.jvp`s, box
+bounds are enforced by projection, and it stops at a step limit or when the step or the cost
+change is below tolerance, reporting a converged flag and its step count. Lifted with `vmap`,
+every operation is elementwise over pixels.
+
+`map_pixels` runs such a vmapped kernel over the image in tiles of a few thousand pixels with
+`lax.map`: an LM step has a few hundred intermediate values per pixel, and whole-image
+intermediates would go through memory (measured: 4 steps on 512 x 512 took 379 ms image-wide,
+150 ms in tiles of 16k pixels). Tiles also stop early: a tile whose pixels have all converged
+does no more steps.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float, Int
 
+from ._l2 import solve3
 
-__all__ = ["BatchedLM", "batched_least_squares"]
+__all__ = ["BatchedLM", "lm_pixel", "map_pixels"]
+
+# Pixels per tile for `map_pixels`: large enough to amortise the loop, small enough that one
+# tile's intermediates stay in cache.
+TILE = 16384
 
 
 class BatchedLM(eqx.Module):
@@ -36,10 +49,7 @@ class BatchedLM(eqx.Module):
 
 
 def _solve_small(h, g):
-    """Solve `h x = g` elementwise over pixels: `h` nested lists `[P][P]` of `(N,)`, `g` `[P]`.
-
-    Closed form (Cramer / cofactors) for P <= 3 so a whole-image step stays elementwise.
-    """
+    """Solve `h x = g` for one pixel: `h` nested lists `[P][P]` of scalars, `g` `[P]`."""
     p = len(g)
     one = jnp.ones_like(g[0])
     if p == 1:
@@ -50,99 +60,115 @@ def _solve_small(h, g):
         det = jnp.where(jnp.abs(det) > 0, det, one)
         return [(h[1][1] * g[0] - h[0][1] * g[1]) / det, (h[0][0] * g[1] - h[1][0] * g[0]) / det]
     if p == 3:
-        c00 = h[1][1] * h[2][2] - h[1][2] * h[2][1]
-        c01 = h[1][2] * h[2][0] - h[1][0] * h[2][2]
-        c02 = h[1][0] * h[2][1] - h[1][1] * h[2][0]
-        c11 = h[0][0] * h[2][2] - h[0][2] * h[2][0]
-        c12 = h[0][1] * h[2][0] - h[0][0] * h[2][1]
-        c22 = h[0][0] * h[1][1] - h[0][1] * h[1][0]
-        det = h[0][0] * c00 + h[0][1] * c01 + h[0][2] * c02
-        det = jnp.where(jnp.abs(det) > 0, det, one)
-        return [(c00 * g[0] + c01 * g[1] + c02 * g[2]) / det,
-                (c01 * g[0] + c11 * g[1] + c12 * g[2]) / det,
-                (c02 * g[0] + c12 * g[1] + c22 * g[2]) / det]
-    raise ValueError(f"BatchedLM handles at most 3 parameters per problem, got {p}")
+        x, _ = solve3(h, g)
+        return [x[0], x[1], x[2]]
+    raise ValueError(f"lm_pixel handles at most 3 parameters per problem, got {p}")
 
 
-def batched_least_squares(
+def lm_pixel(
     fn: Callable,
-    y0: Float[Array, "N P"],
-    args,
+    y0: tuple[Float[Array, ""], ...],
     solver: BatchedLM,
     *,
     max_steps: int,
-    lower: Float[Array, " P"] | None = None,
-    upper: Float[Array, " P"] | None = None,
-) -> tuple[Float[Array, "N P"], Bool[Array, " N"], Int[Array, " N"]]:
-    """Minimise $\\frac12 |r_n(y_n)|^2$ independently for every problem n.
-
-    The problems are evaluated together, image-wide: `fn(y (N, P), args) -> (K, N)` residuals,
-    where column n may depend on row `y[n]` only. Then the per-problem Jacobian column j is one
-    `jax.jvp` with tangent $e_j$ in every row, so a step costs P + 2 whole-image evaluations.
+    lower: tuple | None = None,
+    upper: tuple | None = None,
+    active: Bool[Array, ""] | bool = True,
+) -> tuple[tuple[Float[Array, ""], ...], Bool[Array, ""], Int[Array, ""]]:
+    """Minimise $\\frac12 |r(y)|^2$ for one pixel; lift with `jax.vmap`.
 
     **Arguments:**
-    - `fn`: residual function as above (pure, jax-traceable).
-    - `y0`: `(N, P)` starting points, P <= 3.
-    - `args`: passed to `fn` unchanged.
-    - `solver`: a `BatchedLM`.
-    - `max_steps`: step limit (each step: one residual with its Jacobian, one trial residual).
-    - `lower`, `upper`: `(P,)` box bounds enforced by projection (default unbounded).
+    - `fn`: `fn(y) -> (K,)` residuals, `y` a tuple of P scalars (P <= 3); pure, traceable.
+    - `y0`: the starting tuple.
+    - `solver`: a `BatchedLM` (tolerances and initial damping).
+    - `max_steps`: step limit (each step: residuals with their Jacobian, one trial residual).
+    - `lower`, `upper`: per-parameter bounds (scalars or None for unbounded), by projection.
+    - `active`: False skips the pixel (`y0` back, converged, 0 steps).
 
-    **Returns:** `(y (N, P), converged (N,) bool, steps (N,) int32)`.
+    **Returns:** `(y, converged, steps)`. A pixel whose damping grows past 1e10 (no step lowers
+    the cost) counts as converged: it sits at a minimum to working precision.
     """
-    dtype = y0.dtype
-    n, p = y0.shape
-    lo = jnp.full((p,), -jnp.inf, dtype) if lower is None else jnp.asarray(lower, dtype)
-    hi = jnp.full((p,), jnp.inf, dtype) if upper is None else jnp.asarray(upper, dtype)
+    p = len(y0)
+    dtype = y0[0].dtype
     rtol = jnp.asarray(solver.rtol, dtype)
     atol = jnp.asarray(solver.atol, dtype)
     tiny = jnp.asarray(jnp.finfo(dtype).tiny, dtype)
-    eye = jnp.eye(p, dtype=dtype)
+    lower = (None,) * p if lower is None else lower
+    upper = (None,) * p if upper is None else upper
+    zero, one = jnp.zeros((), dtype), jnp.ones((), dtype)
 
-    def f(y):
-        return fn(y, args)
+    def project(y):
+        out = []
+        for v, lo, hi in zip(y, lower, upper):
+            v = v if lo is None else jnp.maximum(v, lo)
+            out.append(v if hi is None else jnp.minimum(v, hi))
+        return tuple(out)
+
+    def cost(r):
+        return 0.5 * sum(r[k] * r[k] for k in range(r.shape[0]))
 
     def step(y, lam):
         cols = []
         for j in range(p):
-            r, col = jax.jvp(f, (y,), (jnp.broadcast_to(eye[j], (n, p)),))
+            r, col = jax.jvp(fn, (y,), (tuple(one if a == j else zero for a in range(p)),))
             cols.append(col)
-        g = [jnp.sum(c * r, axis=0) for c in cols]
-        h = [[jnp.sum(a * b, axis=0) for b in cols] for a in cols]
+        ks = range(r.shape[0])
+        g = [sum(c[k] * r[k] for k in ks) for c in cols]
+        h = [[sum(a[k] * b[k] for k in ks) for b in cols] for a in cols]
         hmax = h[0][0]
         for j in range(1, p):
             hmax = jnp.maximum(hmax, h[j][j])
         floor = 1e-9 * jnp.maximum(hmax, tiny)
         damped = [[h[a][b] + (lam * jnp.maximum(h[a][a], floor) + floor if a == b else 0)
                    for b in range(p)] for a in range(p)]
-        delta = jnp.stack(_solve_small(damped, g), axis=-1)
-        y_new = jnp.clip(y - delta, lo[None], hi[None])
-        c_old = 0.5 * jnp.sum(r * r, axis=0)
-        r_new = f(y_new)
-        c_new = 0.5 * jnp.sum(r_new * r_new, axis=0)
+        delta = _solve_small(damped, g)
+        y_new = project(tuple(v - d for v, d in zip(y, delta)))
+        c_old, c_new = cost(r), cost(fn(y_new))
         ok = jnp.isfinite(c_new) & (c_new <= c_old)
-        small = jnp.all(jnp.abs(y_new - y) <= atol + rtol * jnp.abs(y), axis=-1)
-        flat = ok & (c_old - c_new <= rtol * c_old)
+        small = jnp.asarray(True)
+        for v, v_new in zip(y, y_new):
+            small = small & (jnp.abs(v_new - v) <= atol + rtol * jnp.abs(v))
+        # The cost no longer changes beyond rounding, whether or not the step was accepted
+        # (in float32 a pixel at its minimum sees rejected steps of the size of rounding).
+        flat = jnp.abs(c_old - c_new) <= rtol * c_old
         return y_new, ok, small | flat | (c_old <= tiny)
 
     def cond(state):
-        _, _, done, k, _ = state
-        return (k < max_steps) & ~jnp.all(done)
+        _, _, done, k = state
+        return (k < max_steps) & ~done
 
     def body(state):
-        y, lam, done, k, steps = state
+        y, lam, _, k = state
         y_new, ok, conv = step(y, lam)
-        live = ~done
-        accept = live & ok
-        y = jnp.where(accept[:, None], y_new, y)
-        lam = jnp.where(live, jnp.where(ok, lam / 3, lam * 2), lam)
-        lam = jnp.minimum(lam, jnp.asarray(1e10, dtype))
-        steps = steps + live.astype(jnp.int32)
-        done = done | (live & conv) | (lam >= 1e10)
-        return y, lam, done, k + 1, steps
+        y = tuple(jnp.where(ok, a, b) for a, b in zip(y_new, y))
+        lam = jnp.minimum(jnp.where(ok, lam / 3, lam * 4), jnp.asarray(1e10, dtype))
+        return y, lam, conv | (lam >= 1e10), k + 1
 
-    lam0 = jnp.full((n,), solver.damping0, dtype)
-    state = (y0, lam0, jnp.zeros((n,), bool), jnp.asarray(0), jnp.zeros((n,), jnp.int32))
-    y, _, done, _, steps = jax.lax.while_loop(cond, body, state)
-    y = jnp.where(jnp.isfinite(y), y, y0)
+    state = (project(y0), jnp.asarray(solver.damping0, dtype), ~jnp.asarray(active),
+             jnp.asarray(0, jnp.int32))
+    y, _, done, steps = jax.lax.while_loop(cond, body, state)
+    y = tuple(jnp.where(jnp.isfinite(a), a, b) for a, b in zip(y, y0))
     return y, done, steps
+
+
+def map_pixels(f: Callable, *args, tile: int = TILE):
+    """`jax.vmap(f)(*args)` computed `tile` pixels at a time (`lax.map` over tiles).
+
+    Every array leaf of `args` has the pixel axis first, `(N, ...)`; so does the output. N is
+    padded to a multiple of `tile` with copies of the first pixel (cropped again), so `f` only
+    sees valid data.
+    """
+    leaves = jax.tree_util.tree_leaves(args)
+    n = leaves[0].shape[0]
+    if n <= tile:
+        return jax.vmap(f)(*args)
+    nt = -(-n // tile)
+    pad = nt * tile - n
+
+    def split(x):
+        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])]) if pad else x
+        return x.reshape((nt, tile) + x.shape[1:])
+
+    tiles = jax.tree_util.tree_map(split, args)
+    out = jax.lax.map(lambda a: jax.vmap(f)(*a), tiles)
+    return jax.tree_util.tree_map(lambda x: x.reshape((nt * tile,) + x.shape[2:])[:n], out)

@@ -40,7 +40,8 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._batched_lm import BatchedLM, batched_least_squares
+from ._batched_lm import BatchedLM, lm_pixel, map_pixels
+from ._reduce import sum0
 from ._status import Status
 
 __all__ = [
@@ -148,10 +149,12 @@ def oren_nayar(
 
 def _geometry(normals, lights):
     """$c_i$ `(K, ...)`, $c_r$ `(...)`, $P$ `(K, ...)` for normals `(..., 3)`, lights `(K, 3)`."""
-    cos_i = jnp.einsum("kc,...c->k...", lights, normals)
+    # Written out: an einsum over the 3-axis is slow on XLA-CPU (see `_reduce.py`).
+    col = lambda j: lights[:, j].reshape((-1,) + (1,) * (normals.ndim - 1))  # noqa: E731
+    cos_i = col(0) * normals[None, ..., 0] + col(1) * normals[None, ..., 1] + (
+        col(2) * normals[None, ..., 2])
     cos_r = normals[..., 2]
-    lz = lights[:, 2].reshape((-1,) + (1,) * (normals.ndim - 1))
-    return cos_i, cos_r, lz - cos_i * cos_r[None]
+    return cos_i, cos_r, col(2) - cos_i * cos_r[None]
 
 
 def render_oren_nayar(
@@ -238,8 +241,8 @@ def _pixel_albedo(i, w, f, rho_given, refit):
 
     `i`, `w`, `f` share a leading sample axis `K`.
     """
-    num = jnp.sum(w * i * f, axis=0)
-    den = jnp.sum(w * f * f, axis=0)
+    num = sum0(w * i * f)
+    den = sum0(w * f * f)
     rho = num / jnp.where(den > 0, den, 1)
     return jnp.where(refit, jnp.where(den > 0, rho, 0), rho_given)
 
@@ -289,22 +292,47 @@ def _s_from_ratio(t):
     return (-b + jnp.sqrt(b * b - 4 * a * c)) / (2 * a)
 
 
-def _linear_start(data):
-    """Per-pixel $s$ from the qualitative model as a linear fit $I \\approx \\rho' c + u g$.
+def _ratio(s):
+    """$t = B(s) / A(s)$ of the qualitative model (increasing in $s \\ge 0$, from 0 to 0.9)."""
+    a, b, _ = _coefficients(s, "qualitative")
+    return b / a
 
-    With the albedo free, $\\rho A c + \\rho B g$ is linear in $(\\rho A, \\rho B)$: a 2x2 solve
-    per pixel, whose ratio $t = B/A$ gives $s$ in closed form. Used to start the per-pixel LM.
+
+def _exact_pixels(data, s_max):
+    """Per-pixel $s$ of the qualitative model with the albedo free, exactly, in closed form.
+
+    With $f = A(s)\\,(c + t g)$ and $t = B/A$, the albedo absorbs $A$: after eliminating it the
+    cost is $\\sum I^2 - F(t)$ with $F(t) = (S_{ci} + t S_{gi})^2 / (S_{cc} + 2t S_{cg} +
+    t^2 S_{gg})$ (the $S$ are weighted sums over the pixel's samples). $F$ has two stationary
+    points on the real line: its zero $t = -S_{ci}/S_{gi}$ and its maximum $t^*$, the ratio of the
+    unconstrained 2x2 linear fit $I \\approx \\rho' c + u g$. So over the box
+    $[0, t(s_{max})]$ the optimum is $t^*$ if inside, else the better end, and $s$ follows from
+    $t$ by `_s_from_ratio`. No iteration: the same minimum a converged
+    Levenberg–Marquardt finds (tested), for every pixel at once.
     """
     i, w, (c, g), _ = data
-    scc, scg, sgg = (jnp.sum(w * x * y, axis=0) for x, y in ((c, c), (c, g), (g, g)))
-    sci, sgi = jnp.sum(w * c * i, axis=0), jnp.sum(w * g * i, axis=0)
+    scc, scg, sgg = (sum0(w * x * y) for x, y in ((c, c), (c, g), (g, g)))
+    sci, sgi = sum0(w * c * i), sum0(w * g * i)
     det = scc * sgg - scg * scg
     ok = det > 1e-9 * jnp.maximum(scc * sgg, jnp.finfo(i.dtype).tiny)
     det = jnp.where(ok, det, 1)
     rho_a = (sgg * sci - scg * sgi) / det
     u = (scc * sgi - scg * sci) / det
-    t = u / jnp.where(rho_a > 0, rho_a, 1)
-    return jnp.where(ok & (rho_a > 0), _s_from_ratio(t), 0)
+    t_max = _ratio(s_max)
+    t_star = jnp.where(ok & (rho_a > 0), jnp.clip(u / jnp.where(rho_a > 0, rho_a, 1), 0, t_max),
+                       0)
+
+    def fit(t):
+        num = sci + t * sgi
+        den = scc + 2 * t * scg + t * t * sgg
+        return jnp.where(den > 0, num * num / jnp.where(den > 0, den, 1), 0)
+
+    f0, f_star, f_max = fit(jnp.zeros_like(t_star)), fit(t_star), fit(t_max)
+    # Ties go to the smaller roughness (Lambert when sigma is not identifiable).
+    t = jnp.where(f_star > f0, t_star, 0)
+    t = jnp.where(f_max > jnp.maximum(f0, f_star), t_max, t)
+    s = jnp.where(t >= t_max, s_max, _s_from_ratio(t))
+    return jnp.clip(s, 0, s_max)
 
 
 def _solve_one(data, s0, s_max, form, refit, solver, max_steps, min_samples):
@@ -327,11 +355,9 @@ def _solve_one(data, s0, s_max, form, refit, solver, max_steps, min_samples):
     denom = jnp.maximum(n, 1).astype(dtype)
     rms = jnp.sqrt(jnp.sum(r**2) / denom)
     rms0 = jnp.sqrt(jnp.sum(r0**2) / denom)
-    status = jnp.select(
-        [n < min_samples, ~converged, at_bound],
-        [Status.TOO_FEW_LIGHTS, Status.NOT_CONVERGED, Status.AT_BOUND],
-        Status.OK,
-    ).astype(jnp.int32)
+    status = jnp.where(n < min_samples, Status.TOO_FEW_LIGHTS,
+                       jnp.where(~converged, Status.NOT_CONVERGED,
+                                 jnp.where(at_bound, Status.AT_BOUND, Status.OK))).astype(jnp.int32)
     sigma = jnp.where(n < min_samples, 0, jnp.sqrt(jnp.maximum(s_proj, 0)))
     sigma = jnp.where(jnp.isfinite(sigma), sigma, 0).astype(dtype)
     steps = sol.stats["num_steps"].astype(jnp.int32)
@@ -339,8 +365,9 @@ def _solve_one(data, s0, s_max, form, refit, solver, max_steps, min_samples):
     return sigma, status, steps, rms, rms0.astype(dtype), n.astype(jnp.int32)
 
 
-def _fit_pixels_batched(data, s0, s_max, form, refit, solver, max_steps, min_samples):
-    """Per-pixel fits with `BatchedLM`: the same problem as `_solve_one`, one per pixel."""
+def _fit_pixels(data, s0, s_max, form, refit, solver, max_steps, min_samples):
+    """Per-pixel fits, all pixels at once: closed form (`solver=None` for the qualitative form
+    with the albedo refitted) or `BatchedLM`; the same problem as `_solve_one`, one per pixel."""
     i, w, geo, rho_given = data
     dtype = i.dtype
     n_px = i.shape[1]
@@ -348,25 +375,36 @@ def _fit_pixels_batched(data, s0, s_max, form, refit, solver, max_steps, min_sam
     def fn(y, a):
         return _residuals(y[:, 0][None], a, form, refit)
 
-    args = data
-    y0 = jnp.full((n_px, 1), s0, dtype)
-    if form == "qualitative" and refit:
-        y0 = jnp.clip(_linear_start(data), 0, s_max)[:, None].astype(dtype)
-    y, done, steps = batched_least_squares(
-        fn, y0, args, solver, max_steps=max_steps,
-        lower=jnp.zeros((1,), dtype), upper=s_max[None])
-    s = y[:, 0]
-    n = jnp.sum(w > 0, axis=0)
+    if solver is None:
+        s = _exact_pixels(data, s_max)
+        done = jnp.ones((n_px,), bool)
+        steps = jnp.zeros((n_px,), jnp.int32)
+    else:
+        y0 = jnp.full((n_px,), s0, dtype)
+        if form == "qualitative" and refit:
+            y0 = _exact_pixels(data, s_max).astype(dtype)
+
+        def one(i_, w_, geo_, rho_, y0_):
+            def r(y):
+                return _residuals(y[0], (i_, w_, geo_, rho_), form, refit)
+
+            (s_,), done_, steps_ = lm_pixel(r, (y0_,), solver, max_steps=max_steps,
+                                            lower=(0,), upper=(s_max,))
+            return s_, done_, steps_
+
+        geo_t = tuple(jnp.broadcast_to(x, i.shape).T for x in geo)
+        s, done, steps = map_pixels(one, i.T, w.T, geo_t, rho_given, y0)
+    n = sum0(w > 0)
     s_proj = jnp.clip(s, 0, s_max)
     at_bound = (s <= 0) | (s >= s_max)
-    r = fn(s_proj[:, None], args)
-    r0 = fn(jnp.zeros((n_px, 1), dtype), args)
+    r = fn(s_proj[:, None], data)
+    r0 = fn(jnp.zeros((n_px, 1), dtype), data)
     denom = jnp.maximum(n, 1).astype(dtype)
-    rms = jnp.sqrt(jnp.sum(r**2, axis=0) / denom)
-    rms0 = jnp.sqrt(jnp.sum(r0**2, axis=0) / denom)
-    status = jnp.select([n < min_samples, ~done, at_bound],
-                        [Status.TOO_FEW_LIGHTS, Status.NOT_CONVERGED, Status.AT_BOUND],
-                        Status.OK).astype(jnp.int32)
+    rms = jnp.sqrt(sum0(r**2) / denom)
+    rms0 = jnp.sqrt(sum0(r0**2) / denom)
+    status = jnp.where(n < min_samples, Status.TOO_FEW_LIGHTS,
+                       jnp.where(~done, Status.NOT_CONVERGED,
+                                 jnp.where(at_bound, Status.AT_BOUND, Status.OK))).astype(jnp.int32)
     sigma = jnp.where(n < min_samples, 0, jnp.sqrt(s_proj)).astype(dtype)
     return sigma, status, steps, rms.astype(dtype), rms0.astype(dtype), n.astype(jnp.int32)
 
@@ -397,8 +435,8 @@ def _fit(images, normals, albedo, lights, mask, sample_mask, labels, s0, s_max, 
             return _solve_one(d, *args)
 
         out = jax.vmap(region)(jnp.arange(n_labels))
-    elif isinstance(solver, BatchedLM):  # per pixel, the fast batched kernel
-        out = _fit_pixels_batched(data, *args)
+    elif solver is None or isinstance(solver, BatchedLM):  # per pixel, image-wide kernels
+        out = _fit_pixels(data, *args)
     else:  # per pixel: one optimistix solve per pixel, lifted with vmap
         def pixel(i_, w_, geo_, rho_):
             geo_ = tuple(x[:, None] for x in geo_)
@@ -485,7 +523,11 @@ def fit_roughness(
     - `per="global"`: one $\\sigma$ for every pixel in `mask`.
     - `per="region"`: one $\\sigma$ per label $0 \\dots R-1$ of the integer map `labels`
       (negative labels are ignored); the R problems are solved under `vmap`.
-    - `per="pixel"`: one $\\sigma$ per pixel, a batched one-parameter solve under `vmap`.
+    - `per="pixel"`: one $\\sigma$ per pixel. For the qualitative form with the albedo refitted
+      (the defaults) this has a closed-form exact solution (see `_exact_pixels`: the cost is a
+      ratio of quadratics in $B/A$), computed for all pixels at once with `steps` 0; otherwise,
+      or when a solver is passed, a batched one-parameter solve per pixel (`jaxps.BatchedLM`,
+      image-wide, or any optimistix solver under `vmap`).
 
     **Arguments:**
     - `images`: `(K, H, W)` grey, linear, floating point.
@@ -503,7 +545,9 @@ def fit_roughness(
     - `sigma0`: starting $\\sigma$.
     - `min_samples`: fewer usable samples than this gives `TOO_FEW_LIGHTS` (default 2 per
       pixel fit, with albedo refitted; else 1; 2 per global/region fit).
-    - `solver`: an `optx.AbstractLeastSquaresSolver` object; `max_steps`: its step limit.
+    - `solver`: an `optx.AbstractLeastSquaresSolver` object (default `LevenbergMarquardt`), or
+      for `per="pixel"` a `jaxps.BatchedLM` (default where there is no closed form);
+      `max_steps`: its step limit.
 
     **Returns:** a `RoughnessFit` (`sigma`, `status`, `steps`, `rms`, `rms_lambertian`,
     `n_samples`, `albedo`), floats in the dtype of `images`.
@@ -546,7 +590,7 @@ def fit_roughness(
                          f"{np.shape(sample_mask)}")
     if min_samples is None:
         min_samples = (2 if refit_albedo else 1) if per == "pixel" else 2
-    if solver is None:
+    if solver is None and not (per == "pixel" and form == "qualitative" and refit_albedo):
         solver = BatchedLM() if per == "pixel" else default_solver(dtype)
     elif isinstance(solver, BatchedLM) and per != "pixel":
         raise ValueError("solver=BatchedLM() is for per='pixel'; pass an optimistix solver")

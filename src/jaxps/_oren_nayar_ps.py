@@ -16,72 +16,92 @@ with it fixed), or a known $\\sigma$ (a scalar or an `(H, W)` map), with only $(
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._batched_lm import BatchedLM, batched_least_squares
-from ._l2 import PSResult, ps_l2
-from ._oren_nayar import SIGMA_MAX, _check_form, _shading, fit_roughness
+from ._batched_lm import BatchedLM, lm_pixel, map_pixels
+from ._l2 import PSResult, ps_l2, solve3
+from ._oren_nayar import (
+    SIGMA_MAX,
+    _basis,
+    _check_form,
+    _exact_pixels,
+    _shading,
+    fit_roughness,
+)
+from ._reduce import sum0
 from ._status import Status
 
 __all__ = ["ps_oren_nayar"]
 
 # A joint (p, q, sigma) fit with a free albedo needs more samples than unknowns.
 _MIN_SAMPLES_JOINT = 5
+# Closed-form alternation rounds before the LM (see `_start`).
+_START_STEPS = 4
 
 
-def _normal(y):
-    """Unit normals `(N, 3)` from gradients `y[:, 0] = p`, `y[:, 1] = q`."""
-    p, q = y[:, 0], y[:, 1]
+def _unit(p, q):
+    """Unit normal `(n_x, n_y, n_z)` from the gradient $(p, q)$: $(-p, -q, 1)/\\|\\cdot\\|$."""
     inv = jax.lax.rsqrt(1 + p * p + q * q)
-    return jnp.stack([-p * inv, -q * inv, inv], axis=-1)
+    return -p * inv, -q * inv, inv
 
 
-def _model(y, s, lights, form):
-    """$f$ `(K, N)` for gradients `y` `(N, >=2)` and $s$ `(N,)`."""
-    n = _normal(y)
-    cos_i = lights @ n.T
-    cos_r = n[:, 2][None]
-    p = lights[:, 2:3] - cos_i * cos_r
-    return _shading(cos_i, cos_r, p, s[None], form)
+def _geometry(n, lights):
+    """$c_i$, $c_r$, $P$ of one pixel: `(K,)`, scalar, `(K,)`; the sum over xyz written out."""
+    cos_i = lights[:, 0] * n[0] + lights[:, 1] * n[1] + lights[:, 2] * n[2]
+    return cos_i, n[2], lights[:, 2] - cos_i * n[2]
 
 
 def _albedo(i, w, f):
-    num = jnp.sum(w * i * f, axis=0)
-    den = jnp.sum(w * f * f, axis=0)
+    """Closed-form albedo $\\sum w I f / \\sum w f^2$ of one pixel (0 when no sample)."""
+    num, den = sum0(w * i * f), sum0(w * f * f)
     return jnp.where(den > 0, num / jnp.where(den > 0, den, 1), 0)
 
 
-def _residual_joint(y, data):
-    i, w, lights, form = data
-    f = _model(y, y[:, 2], lights, form)
-    return w * (i - _albedo(i, w, f)[None] * f)
+def _start(i, w, n, s, lights, s_max, joint, form, steps):
+    """A cheap start for the LM: `steps` rounds of (exact $s$ for the normal, qualitative form
+    only; then the normal from Lambertian least squares on the images divided by the current
+    Oren–Nayar/Lambert ratio). Each round is closed form; the alternation alone converges
+    slowly where $\\sigma$ and the normal are coupled, hence the LM after it."""
+    exact = joint and form == "qualitative"
+    m = [[sum0(w * lights[:, a] * lights[:, b]) for b in range(3)] for a in range(3)]
+    for _ in range(steps):
+        cos_i, cos_r, p = _geometry(n, lights)
+        if exact:
+            c, g = _basis(cos_i, cos_r, p, form)
+            s = _exact_pixels((i, w, (c, g), None), s_max)
+        f = _shading(cos_i, cos_r, p, s, form)
+        ratio = jnp.where(cos_i > 0, f / jnp.where(cos_i > 0, cos_i, 1), 1)
+        ratio = jnp.where(ratio > 0, ratio, 1)
+        x, _ = solve3(m, [sum0(w * lights[:, a] * i / ratio) for a in range(3)])
+        norm = jnp.sqrt(x[0] ** 2 + x[1] ** 2 + x[2] ** 2)
+        good = (norm > 0) & (x[2] > 0)
+        n = tuple(jnp.where(good, x[a] / jnp.where(good, norm, 1), n[a]) for a in range(3))
+    return n, s
 
 
-def _residual_fixed(y, data):
-    i, w, lights, form, s = data
-    f = _model(y, s, lights, form)
-    return w * (i - _albedo(i, w, f)[None] * f)
+def _pixel(i, w, n0, s0, active, lights, s_max, *, joint, form, solver, max_steps,
+           start_steps):
+    """One pixel: `i`, `w` `(K,)`, Lambertian normal `n0` `(3,)`, $s$ start (or the fixed $s$).
 
+    Returns the normal `(3,)`, $s$, converged flag and LM step count.
+    """
+    n, s = _start(i, w, (n0[0], n0[1], n0[2]), s0, lights, s_max, joint, form, start_steps)
+    nz = jnp.maximum(n[2], 0.05)
+    y0 = (-n[0] / nz, -n[1] / nz) + ((s,) if joint else ())
 
-def _gradients(n):
-    nz = jnp.maximum(n[:, 2], 0.05)
-    return jnp.stack([-n[:, 0] / nz, -n[:, 1] / nz], axis=-1)
+    def resid(y):
+        ss = y[2] if joint else s
+        f = _shading(*_geometry(_unit(y[0], y[1]), lights), ss, form)
+        return w * (i - _albedo(i, w, f) * f)
 
-
-def _solve(grey, w, lights, y0, s_fixed, s_max, form, solver, max_steps):
-    dtype = grey.dtype
-    if s_fixed is None:
-        fn = lambda y, d: _residual_joint(y, d + (form,))  # noqa: E731
-        lower = jnp.asarray([-jnp.inf, -jnp.inf, 0], dtype)
-        upper = jnp.asarray([jnp.inf, jnp.inf, s_max], dtype)
-        return batched_least_squares(fn, y0, (grey, w, lights), solver, max_steps=max_steps,
-                                     lower=lower, upper=upper)
-    fn = lambda y, d: _residual_fixed(y, d[:3] + (form, d[3]))  # noqa: E731
-    return batched_least_squares(fn, y0[:, :2], (grey, w, lights, s_fixed), solver,
-                                 max_steps=max_steps)
+    bounds = dict(lower=(None, None, 0), upper=(None, None, s_max)) if joint else {}
+    y, done, steps = lm_pixel(resid, y0, solver, max_steps=max_steps, active=active, **bounds)
+    return jnp.stack(_unit(y[0], y[1])), y[2] if joint else s, done, steps
 
 
 def ps_oren_nayar(images, lights, mask, sample_mask, thresholds, *, sigma="pixel",
@@ -170,29 +190,27 @@ def _core(images, lights, mask, sample_mask, thresholds, base, fixed, s0, s_max,
             & (grey >= shadow))
     status0 = base.status.reshape(-1)
     ok0 = status0 == Status.OK
-    n_used = jnp.sum(used, axis=0)
+    n_used = sum0(used)
     joint = fixed is None
     enough = ok0 & ((n_used >= _MIN_SAMPLES_JOINT) if joint else (n_used >= 3))
     wgt = (used & enough[None]).astype(dtype)
 
     n0 = base.normals.reshape(-1, 3)
-    y0 = jnp.concatenate([_gradients(n0), jnp.full((h * w, 1), s0, dtype)], axis=-1)
-    s_fixed = None if joint else (fixed.reshape(-1) ** 2).astype(dtype)
-    y, done, steps = _solve(grey, wgt, lights, y0, s_fixed, s_max, form, solver, max_steps)
-
-    normals = _normal(y)
-    s = y[:, 2] if joint else s_fixed
+    s_start = jnp.full((h * w,), s0, dtype) if joint else (fixed.reshape(-1) ** 2).astype(dtype)
+    kernel = functools.partial(_pixel, lights=lights, s_max=s_max, joint=joint, form=form,
+                               solver=solver, max_steps=max_steps, start_steps=_START_STEPS)
+    normals, s, done, steps = map_pixels(kernel, grey.T, wgt.T, n0, s_start, ok0 & enough)
     s = jnp.clip(s, 0, s_max)
     # Too few samples for the joint fit: keep the Lambertian answer, sigma 0.
     keep_l2 = ok0 & ~enough
     normals = jnp.where(keep_l2[:, None], n0, normals)
     s = jnp.where(keep_l2, 0, s)
-    f = _model(jnp.concatenate([_gradients(normals), s[:, None]], axis=-1), s,
-               lights, form)  # (K, N)
+    cos_i, cos_r, p = _geometry(normals.T[:, None], lights[..., None])  # (K, N), (1, N)
+    f = _shading(cos_i, cos_r, p, s[None], form)
     wu = used.astype(dtype)
     rho = jnp.stack([_albedo(flat[..., j], wu, f) for j in range(c)], axis=-1)  # (N, C)
     res = jnp.mean(flat - rho[None] * f[..., None], axis=-1)
-    residual = jnp.sqrt(jnp.sum(wu * res**2, axis=0) / jnp.maximum(n_used, 1).astype(dtype))
+    residual = jnp.sqrt(sum0(wu * res**2) / jnp.maximum(n_used, 1).astype(dtype))
 
     status = jnp.where(ok0 & enough & ~done, Status.NOT_CONVERGED, status0)
     status = jnp.where(mask.reshape(-1), status, Status.MASKED).astype(jnp.int32)
