@@ -27,7 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from ._l2 import solve3
 
-__all__ = ["BatchedLM", "lm_pixel", "map_pixels"]
+__all__ = ["BatchedLM", "lm_pixel", "map_pixels", "solve_pixels"]
 
 # Pixels per tile for `map_pixels`: large enough to amortise the loop, small enough that one
 # tile's intermediates stay in cache.
@@ -74,7 +74,8 @@ def lm_pixel(
     lower: tuple | None = None,
     upper: tuple | None = None,
     active: Bool[Array, ""] | bool = True,
-) -> tuple[tuple[Float[Array, ""], ...], Bool[Array, ""], Int[Array, ""]]:
+    damping: Float[Array, ""] | None = None,
+) -> tuple[tuple[Float[Array, ""], ...], Bool[Array, ""], Int[Array, ""], Float[Array, ""]]:
     """Minimise $\\frac12 |r(y)|^2$ for one pixel; lift with `jax.vmap`.
 
     **Arguments:**
@@ -84,9 +85,10 @@ def lm_pixel(
     - `max_steps`: step limit (each step: residuals with their Jacobian, one trial residual).
     - `lower`, `upper`: per-parameter bounds (scalars or None for unbounded), by projection.
     - `active`: False skips the pixel (`y0` back, converged, 0 steps).
+    - `damping`: the starting damping (default `solver.damping0`), to resume a solve.
 
-    **Returns:** `(y, converged, steps)`. A pixel whose damping grows past 1e10 (no step lowers
-    the cost) counts as converged: it sits at a minimum to working precision.
+    **Returns:** `(y, converged, steps, damping)`. A pixel whose damping grows past 1e10 (no
+    step lowers the cost) counts as converged: it sits at a minimum to working precision.
     """
     p = len(y0)
     dtype = y0[0].dtype
@@ -144,31 +146,108 @@ def lm_pixel(
         lam = jnp.minimum(jnp.where(ok, lam / 3, lam * 4), jnp.asarray(1e10, dtype))
         return y, lam, conv | (lam >= 1e10), k + 1
 
-    state = (project(y0), jnp.asarray(solver.damping0, dtype), ~jnp.asarray(active),
-             jnp.asarray(0, jnp.int32))
-    y, _, done, steps = jax.lax.while_loop(cond, body, state)
+    lam0 = jnp.asarray(solver.damping0 if damping is None else damping, dtype)
+    state = (project(y0), lam0, ~jnp.asarray(active), jnp.asarray(0, jnp.int32))
+    y, lam, done, steps = jax.lax.while_loop(cond, body, state)
     y = tuple(jnp.where(jnp.isfinite(a), a, b) for a, b in zip(y, y0))
-    return y, done, steps
+    return y, done, steps, lam
 
 
 def map_pixels(f: Callable, *args, tile: int = TILE):
-    """`jax.vmap(f)(*args)` computed `tile` pixels at a time (`lax.map` over tiles).
+    """`jax.vmap(f, in_axes=-1, out_axes=-1)(*args)` computed `tile` pixels at a time.
 
-    Every array leaf of `args` has the pixel axis first, `(N, ...)`; so does the output. N is
-    padded to a multiple of `tile` with copies of the first pixel (cropped again), so `f` only
-    sees valid data.
+    Every array leaf of `args` has the pixel axis *last*, `(..., N)`; so does the output. The
+    pixel axis stays minor inside the kernel too, which is what XLA-CPU vectorises: with the
+    pixel axis first, a one-pixel `(K,)` array becomes `(N, K)` and every operation runs along
+    a 5-wide minor axis (measured several times slower). N is padded to a multiple of `tile`
+    with copies of the first pixel (cropped again), so `f` only sees valid data; the tiles run
+    one after another under `lax.map`.
     """
-    leaves = jax.tree_util.tree_leaves(args)
-    n = leaves[0].shape[0]
+    kernel = jax.vmap(f, in_axes=-1, out_axes=-1)
+    n = jax.tree_util.tree_leaves(args)[0].shape[-1]
     if n <= tile:
-        return jax.vmap(f)(*args)
+        return kernel(*args)
     nt = -(-n // tile)
     pad = nt * tile - n
 
     def split(x):
-        x = jnp.concatenate([x, jnp.broadcast_to(x[:1], (pad,) + x.shape[1:])]) if pad else x
-        return x.reshape((nt, tile) + x.shape[1:])
+        if pad:
+            x = jnp.concatenate([x, jnp.broadcast_to(x[..., :1], x.shape[:-1] + (pad,))], -1)
+        return jnp.moveaxis(x.reshape(x.shape[:-1] + (nt, tile)), -2, 0)
 
-    tiles = jax.tree_util.tree_map(split, args)
-    out = jax.lax.map(lambda a: jax.vmap(f)(*a), tiles)
-    return jax.tree_util.tree_map(lambda x: x.reshape((nt * tile,) + x.shape[2:])[:n], out)
+    def join(x):
+        return jnp.moveaxis(x, 0, -2).reshape(x.shape[1:-1] + (nt * tile,))[..., :n]
+
+    out = jax.lax.map(lambda a: kernel(*a), jax.tree_util.tree_map(split, args))
+    return jax.tree_util.tree_map(join, out)
+
+
+# `solve_pixels` rounds: (steps, share of the pixels that may take them). Every pixel gets 4
+# steps; the ones still running continue in smaller and smaller compact sets.
+ROUNDS = ((4, 1.0), (4, 0.5), (8, 0.125), (None, 0.03125))
+
+
+def solve_pixels(
+    fn: Callable,
+    y0: tuple[Float[Array, " N"], ...],
+    args,
+    active: Bool[Array, " N"],
+    solver: BatchedLM,
+    *,
+    max_steps: int,
+    lower: tuple | None = None,
+    upper: tuple | None = None,
+    rounds: tuple = ROUNDS,
+    tile: int = TILE,
+) -> tuple[tuple[Float[Array, " N"], ...], Bool[Array, " N"], Int[Array, " N"]]:
+    """`lm_pixel` for every pixel, in rounds so that a few slow pixels cost little.
+
+    A tile runs until its slowest pixel stops, and in a flat valley (e.g. roughness near normal
+    incidence, where it barely changes the shading) a pixel can take tens of steps. So every
+    pixel first gets a few steps in tiles; then the pixels still running are gathered into a
+    compact array (a static share of N: `rounds` gives (steps, share) per round, the last
+    round's steps being whatever is left of `max_steps`) and continue where they stopped,
+    damping included. Pixels beyond a round's share (the first ones in raster order are
+    taken) stop there and are reported unconverged.
+
+    **Arguments:** `fn(y, a) -> (K,)` residuals of one pixel for the parameter tuple `y` and
+    that pixel's slice `a` of `args` (a pytree of `(..., N)` arrays); `y0` a tuple of `(N,)`
+    starts; `active` `(N,)` pixels to solve; the rest as in `lm_pixel`.
+
+    **Returns:** `(y, converged (N,), steps (N,) int32)`.
+    """
+    n = active.shape[0]
+    bounds = {"lower": lower, "upper": upper}
+
+    def run(limit):
+        def one(y, a, act, lam):
+            return lm_pixel(lambda v: fn(v, a), y, solver, max_steps=limit, active=act,
+                            damping=lam, **bounds)
+        return one
+
+    y = y0
+    lam = jnp.full((n,), solver.damping0, y0[0].dtype)
+    done = ~active
+    steps = jnp.zeros((n,), jnp.int32)
+    left = max_steps
+    if n <= tile:  # one tile: nothing to gain from rounds (and each costs a compile)
+        rounds = ((None, 1.0),)
+    for limit, share in rounds:
+        limit = left if limit is None else min(limit, left)
+        if limit <= 0:
+            break
+        cap = min(n, max(1, int(n * share)))
+        if cap == n:  # everyone, in place
+            y, done, taken, lam = map_pixels(run(limit), y, args, ~done, lam, tile=tile)
+            steps = steps + taken
+        else:
+            idx = jnp.nonzero(~done, size=cap, fill_value=n)[0]
+            take = lambda x: x[..., jnp.minimum(idx, n - 1)]  # noqa: E731, B023
+            y2, done2, taken, lam2 = map_pixels(
+                run(limit), tuple(take(v) for v in y), jax.tree_util.tree_map(take, args),
+                idx < n, take(lam), tile=tile)
+            put = lambda x, v: x.at[idx].set(v, mode="drop")  # noqa: E731, B023
+            y = tuple(put(a, b) for a, b in zip(y, y2))
+            done, lam, steps = put(done, done2), put(lam, lam2), put(steps, take(steps) + taken)
+        left -= limit
+    return y, done | ~active, steps

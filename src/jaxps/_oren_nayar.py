@@ -40,7 +40,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
-from ._batched_lm import BatchedLM, lm_pixel, map_pixels
+from ._batched_lm import BatchedLM, solve_pixels
 from ._reduce import sum0
 from ._status import Status
 
@@ -384,16 +384,13 @@ def _fit_pixels(data, s0, s_max, form, refit, solver, max_steps, min_samples):
         if form == "qualitative" and refit:
             y0 = _exact_pixels(data, s_max).astype(dtype)
 
-        def one(i_, w_, geo_, rho_, y0_):
-            def r(y):
-                return _residuals(y[0], (i_, w_, geo_, rho_), form, refit)
+        def resid(y, a):
+            return _residuals(y[0], a, form, refit)
 
-            (s_,), done_, steps_ = lm_pixel(r, (y0_,), solver, max_steps=max_steps,
-                                            lower=(0,), upper=(s_max,))
-            return s_, done_, steps_
-
-        geo_t = tuple(jnp.broadcast_to(x, i.shape).T for x in geo)
-        s, done, steps = map_pixels(one, i.T, w.T, geo_t, rho_given, y0)
+        geo = tuple(jnp.broadcast_to(x, i.shape) for x in geo)
+        (s,), done, steps = solve_pixels(resid, (y0,), (i, w, geo, rho_given),
+                                         jnp.ones((n_px,), bool), solver, max_steps=max_steps,
+                                         lower=(0,), upper=(s_max,))
     n = sum0(w > 0)
     s_proj = jnp.clip(s, 0, s_max)
     at_bound = (s <= 0) | (s >= s_max)

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._batched_lm import BatchedLM, lm_pixel, map_pixels
+from ._batched_lm import BatchedLM, map_pixels, solve_pixels
 from ._l2 import PSResult, ps_l2, solve3
 from ._oren_nayar import (
     SIGMA_MAX,
@@ -41,7 +41,7 @@ __all__ = ["ps_oren_nayar"]
 # A joint (p, q, sigma) fit with a free albedo needs more samples than unknowns.
 _MIN_SAMPLES_JOINT = 5
 # Closed-form alternation rounds before the LM (see `_start`).
-_START_STEPS = 4
+_START_STEPS = 2
 
 
 def _unit(p, q):
@@ -84,24 +84,23 @@ def _start(i, w, n, s, lights, s_max, joint, form, steps):
     return n, s
 
 
-def _pixel(i, w, n0, s0, active, lights, s_max, *, joint, form, solver, max_steps,
-           start_steps):
-    """One pixel: `i`, `w` `(K,)`, Lambertian normal `n0` `(3,)`, $s$ start (or the fixed $s$).
-
-    Returns the normal `(3,)`, $s$, converged flag and LM step count.
-    """
-    n, s = _start(i, w, (n0[0], n0[1], n0[2]), s0, lights, s_max, joint, form, start_steps)
+def _pixel_start(i, w, n0, s0, lights, s_max, *, joint, form):
+    """One pixel's LM start `(p, q, s)` from its Lambertian normal `n0` `(3,)` (see `_start`)."""
+    n, s = _start(i, w, (n0[0], n0[1], n0[2]), s0, lights, s_max, joint, form, _START_STEPS)
     nz = jnp.maximum(n[2], 0.05)
-    y0 = (-n[0] / nz, -n[1] / nz) + ((s,) if joint else ())
+    return -n[0] / nz, -n[1] / nz, s
 
-    def resid(y):
-        ss = y[2] if joint else s
-        f = _shading(*_geometry(_unit(y[0], y[1]), lights), ss, form)
-        return w * (i - _albedo(i, w, f) * f)
 
-    bounds = dict(lower=(None, None, 0), upper=(None, None, s_max)) if joint else {}
-    y, done, steps = lm_pixel(resid, y0, solver, max_steps=max_steps, active=active, **bounds)
-    return jnp.stack(_unit(y[0], y[1])), y[2] if joint else s, done, steps
+def _resid(y, a, lights, joint, form):
+    """One pixel's residuals $w (I - \\rho f)$ over `y` = $(p, q)$, or $(p, q, s)$ when joint;
+    `a` = (i, w, fixed s). The albedo is eliminated in closed form (variable projection).
+
+    Projecting $s$ out exactly too (as `_start` does) would leave a 2-parameter problem, but
+    the JVP of that closed form made an LM step 10x slower on XLA-CPU; measured, not kept.
+    """
+    i, w, s = a
+    f = _shading(*_geometry(_unit(y[0], y[1]), lights), y[2] if joint else s, form)
+    return w * (i - _albedo(i, w, f) * f)
 
 
 def ps_oren_nayar(images, lights, mask, sample_mask, thresholds, *, sigma="pixel",
@@ -197,9 +196,14 @@ def _core(images, lights, mask, sample_mask, thresholds, base, fixed, s0, s_max,
 
     n0 = base.normals.reshape(-1, 3)
     s_start = jnp.full((h * w,), s0, dtype) if joint else (fixed.reshape(-1) ** 2).astype(dtype)
-    kernel = functools.partial(_pixel, lights=lights, s_max=s_max, joint=joint, form=form,
-                               solver=solver, max_steps=max_steps, start_steps=_START_STEPS)
-    normals, s, done, steps = map_pixels(kernel, grey.T, wgt.T, n0, s_start, ok0 & enough)
+    p, q, s = map_pixels(functools.partial(_pixel_start, lights=lights, s_max=s_max,
+                                           joint=joint, form=form), grey, wgt, n0.T, s_start)
+    fn = functools.partial(_resid, lights=lights, joint=joint, form=form)
+    bounds = {"lower": (None, None, 0), "upper": (None, None, s_max)} if joint else {}
+    y, done, steps = solve_pixels(fn, (p, q, s) if joint else (p, q), (grey, wgt, s),
+                                  ok0 & enough, solver, max_steps=max_steps, **bounds)
+    normals = jnp.stack(_unit(y[0], y[1]), axis=-1)
+    s = y[2] if joint else s
     s = jnp.clip(s, 0, s_max)
     # Too few samples for the joint fit: keep the Lambertian answer, sigma 0.
     keep_l2 = ok0 & ~enough
