@@ -131,6 +131,66 @@ def test_pixel_batched_equals_optimistix_vmap():
                                atol=2e-3)
 
 
+def test_pixel_exact_is_global_minimum():
+    # The closed-form per-pixel fit against a dense float64 grid search over sigma in
+    # [0, sigma_max] with the albedo refitted for every trial (the cost the fit minimises).
+    images, normals, albedo, lights, mask = scene(0.3, h=16, noise=0.01)
+    fit = jaxps.fit_roughness(images, normals, albedo, lights, mask=mask, per="pixel",
+                              sigma_max=0.8)
+    assert np.all(np.asarray(fit.steps) == 0)
+    n = np.asarray(normals, np.float64)
+    lit = np.asarray(lights, np.float64)
+    sig = np.linspace(0, 0.8, 4001)
+    ys, xs = np.nonzero(np.asarray(mask))
+    for y, x in list(zip(ys, xs))[::7]:
+        ci = lit @ n[y, x]
+        cr = n[y, x, 2]
+        ti, tr = np.arccos(np.clip(ci, -1, 1)), np.arccos(cr)
+        # Azimuth difference from P = l.v - ci cr = cos(dphi) sin(ti) sin(tr).
+        cosd = (lit[:, 2] - ci * cr) / np.maximum(np.sin(ti) * np.sin(tr), 1e-12)
+        dphi = np.arccos(np.clip(cosd, -1, 1))
+        i = np.asarray(images, np.float64)[:, y, x]
+        use = ci > np.cos(np.radians(89))
+        f = on_reference(ti[None], tr, dphi[None], sig[:, None], "qualitative")[:, use]
+        rho = (f @ i[use]) / np.maximum(np.sum(f * f, 1), 1e-30)
+        cost = np.sum((i[use][None] - rho[:, None] * f) ** 2, 1)
+        s_fit = float(fit.sigma[y, x])
+        f_fit = on_reference(ti, tr, dphi, s_fit, "qualitative")[use]
+        c_fit = np.sum((i[use] - (f_fit @ i[use]) / (f_fit @ f_fit) * f_fit) ** 2)
+        assert c_fit <= cost.min() * (1 + 1e-3) + 1e-9, (y, x, s_fit, sig[cost.argmin()])
+        if int(fit.status[y, x]) == Status.OK:
+            assert abs(s_fit - sig[cost.argmin()]) < 5e-3
+
+
+def test_solve_pixels_rounds_match_one_round():
+    # Per-pixel Rosenbrock-like problems with very different step counts: running them in
+    # compacting rounds over small tiles gives the single-round answer and step counts.
+    from jaxps._batched_lm import BatchedLM, solve_pixels
+
+    n = 3000
+    a = jnp.linspace(0.5, 3.0, n)[None]
+
+    def fn(y, a):
+        return jnp.stack([10 * (y[1] - y[0] ** 2), a[0] - y[0]])
+
+    y0 = (jnp.full((n,), -1.2), jnp.ones((n,)))
+    active = jnp.arange(n) % 5 != 0
+    lm = BatchedLM(rtol=1e-6, atol=1e-9)
+    one = solve_pixels(fn, y0, a, active, lm, max_steps=200, tile=n)
+    many = solve_pixels(fn, y0, a, active, lm, max_steps=200, tile=256,
+                        rounds=((3, 1.0), (5, 0.1), (None, 0.03)))
+    steps = np.asarray(one[2])
+    act = np.asarray(active)
+    assert steps[act].max() - steps[act].min() >= 5  # a real spread of step counts
+    np.testing.assert_array_equal(np.asarray(many[2]), steps)
+    np.testing.assert_array_equal(np.asarray(many[1]), np.asarray(one[1]))
+    for u, v in zip(many[0], one[0]):
+        np.testing.assert_allclose(np.asarray(u), np.asarray(v), rtol=1e-6)
+    ok = np.asarray(one[1]) & np.asarray(active)
+    np.testing.assert_allclose(np.asarray(one[0][0])[ok], np.asarray(a[0])[ok], rtol=1e-3)
+    assert np.all(steps[~np.asarray(active)] == 0)
+
+
 def test_fit_status_codes():
     # Data falling off faster than Lambert (I = rho cos^1.3): sigma lands on its lower bound 0.
     images, normals, albedo, lights, mask = scene(0.0, noise=0.0)

@@ -204,11 +204,11 @@ def solve_pixels(
 
     A tile runs until its slowest pixel stops, and in a flat valley (e.g. roughness near normal
     incidence, where it barely changes the shading) a pixel can take tens of steps. So every
-    pixel first gets a few steps in tiles; then the pixels still running are gathered into a
-    compact array (a static share of N: `rounds` gives (steps, share) per round, the last
-    round's steps being whatever is left of `max_steps`) and continue where they stopped,
-    damping included. Pixels beyond a round's share (the first ones in raster order are
-    taken) stop there and are reported unconverged.
+    pixel first gets a few steps in tiles; then the pixels still running are gathered into
+    compact arrays (`rounds` gives (steps, share) per round: the array holds that share of N,
+    and as many of them are run as the live pixels need; the last round's steps are whatever
+    is left of `max_steps`) and continue where they stopped, damping included. The rounds
+    change only the cost: the answer is that of one long round.
 
     **Arguments:** `fn(y, a) -> (K,)` residuals of one pixel for the parameter tuple `y` and
     that pixel's slice `a` of `args` (a pytree of `(..., N)` arrays); `y0` a tuple of `(N,)`
@@ -240,14 +240,20 @@ def solve_pixels(
         if cap == n:  # everyone, in place
             y, done, taken, lam = map_pixels(run(limit), y, args, ~done, lam, tile=tile)
             steps = steps + taken
-        else:
-            idx = jnp.nonzero(~done, size=cap, fill_value=n)[0]
-            take = lambda x: x[..., jnp.minimum(idx, n - 1)]  # noqa: E731, B023
-            y2, done2, taken, lam2 = map_pixels(
-                run(limit), tuple(take(v) for v in y), jax.tree_util.tree_map(take, args),
-                idx < n, take(lam), tile=tile)
-            put = lambda x, v: x.at[idx].set(v, mode="drop")  # noqa: E731, B023
-            y = tuple(put(a, b) for a, b in zip(y, y2))
-            done, lam, steps = put(done, done2), put(lam, lam2), put(steps, take(steps) + taken)
+        else:  # the pixels still running, `cap` at a time, until none is left
+            def chunk(state, limit=limit, cap=cap):
+                y, lam, done, steps, pending = state
+                idx = jnp.nonzero(pending, size=cap, fill_value=n)[0]
+                take = lambda x: x[..., jnp.minimum(idx, n - 1)]  # noqa: E731
+                y2, done2, taken, lam2 = map_pixels(
+                    run(limit), tuple(take(v) for v in y), jax.tree_util.tree_map(take, args),
+                    idx < n, take(lam), tile=tile)
+                put = lambda x, v: x.at[idx].set(v, mode="drop")  # noqa: E731
+                return (tuple(put(a, b) for a, b in zip(y, y2)), put(lam, lam2),
+                        put(done, done2), put(steps, take(steps) + taken),
+                        put(pending, jnp.zeros_like(done2)))
+
+            y, lam, done, steps, _ = jax.lax.while_loop(
+                lambda state: jnp.any(state[-1]), chunk, (y, lam, done, steps, ~done))
         left -= limit
     return y, done | ~active, steps
