@@ -153,7 +153,7 @@ def lm_pixel(
     return y, done, steps, lam
 
 
-def map_pixels(f: Callable, *args, tile: int = TILE):
+def map_pixels(f: Callable, *args, tile: int | None = TILE):
     """`jax.vmap(f, in_axes=-1, out_axes=-1)(*args)` computed `tile` pixels at a time.
 
     Every array leaf of `args` has the pixel axis *last*, `(..., N)`; so does the output. The
@@ -161,11 +161,12 @@ def map_pixels(f: Callable, *args, tile: int = TILE):
     pixel axis first, a one-pixel `(K,)` array becomes `(N, K)` and every operation runs along
     a 5-wide minor axis (measured several times slower). N is padded to a multiple of `tile`
     with copies of the first pixel (cropped again), so `f` only sees valid data; the tiles run
-    one after another under `lax.map`.
+    one after another under `lax.map`. `tile=None`: the whole image at once (better for
+    short fixed-length kernels: measured 2.5x faster for the Oren–Nayar start).
     """
     kernel = jax.vmap(f, in_axes=-1, out_axes=-1)
     n = jax.tree_util.tree_leaves(args)[0].shape[-1]
-    if n <= tile:
+    if tile is None or n <= tile:
         return kernel(*args)
     nt = -(-n // tile)
     pad = nt * tile - n
@@ -230,7 +231,7 @@ def solve_pixels(
     done = ~active
     steps = jnp.zeros((n,), jnp.int32)
     left = max_steps
-    if n <= tile:  # one tile: nothing to gain from rounds (and each costs a compile)
+    if tile is None or n <= tile:  # one tile: nothing to gain from rounds (and each costs a compile)
         rounds = ((None, 1.0),)
     for limit, share in rounds:
         limit = left if limit is None else min(limit, left)

@@ -197,7 +197,8 @@ def _core(images, lights, mask, sample_mask, thresholds, base, fixed, s0, s_max,
     n0 = base.normals.reshape(-1, 3)
     s_start = jnp.full((h * w,), s0, dtype) if joint else (fixed.reshape(-1) ** 2).astype(dtype)
     p, q, s = map_pixels(functools.partial(_pixel_start, lights=lights, s_max=s_max,
-                                           joint=joint, form=form), grey, wgt, n0.T, s_start)
+                                           joint=joint, form=form), grey, wgt, n0.T, s_start,
+                         tile=None)
     fn = functools.partial(_resid, lights=lights, joint=joint, form=form)
     bounds = {"lower": (None, None, 0), "upper": (None, None, s_max)} if joint else {}
     y, done, steps = solve_pixels(fn, (p, q, s) if joint else (p, q), (grey, wgt, s),
