@@ -98,6 +98,34 @@ def test_fit_global_recovers_sigma(sigma):
     assert fit.sigma.dtype == images.dtype
 
 
+def test_fit_global_is_grid_minimum():
+    # The global fit (solved on per-pixel sums) against a float64 grid search of the total
+    # per-sample cost with the albedo refitted per pixel, on noisy data.
+    images, normals, albedo, lights, mask = scene(0.25, h=24, noise=0.01, seed=5)
+    fit = jaxps.fit_roughness(images, normals, albedo, lights, mask=mask)
+    assert int(fit.status) == Status.OK
+    m = np.asarray(mask)
+    n = np.asarray(normals, np.float64)[m]
+    lit = np.asarray(lights, np.float64)
+    i = np.asarray(images, np.float64)[:, m].T  # (P, K)
+    ci = n @ lit.T
+    cr = n[:, 2:3]
+    ti, tr = np.arccos(np.clip(ci, -1, 1)), np.arccos(cr)
+    cosd = (lit[None, :, 2] - ci * cr) / np.maximum(np.sin(ti) * np.sin(tr), 1e-12)
+    dphi = np.arccos(np.clip(cosd, -1, 1))
+    use = ci > np.cos(np.radians(89))
+
+    def total(sigma):
+        f = np.where(use, on_reference(ti, tr, dphi, sigma, "qualitative"), 0)
+        rho = np.sum(f * i, 1) / np.maximum(np.sum(f * f, 1), 1e-30)
+        return np.sum(np.where(use, i - rho[:, None] * f, 0) ** 2)
+
+    grid = np.linspace(0.15, 0.35, 401)
+    best = grid[np.argmin([total(v) for v in grid])]
+    assert abs(float(fit.sigma) - best) < 2e-3, (float(fit.sigma), best)
+    assert total(float(fit.sigma)) <= total(best) * (1 + 1e-4)
+
+
 def test_fit_region_and_pixel():
     images, normals, albedo, lights, mask = scene(0.0, noise=0)
     left = np.broadcast_to(np.arange(48)[None, :] < 24, (48, 48))
@@ -165,7 +193,7 @@ def test_pixel_exact_is_global_minimum():
 def test_solve_pixels_rounds_match_one_round():
     # Per-pixel Rosenbrock-like problems with very different step counts: running them in
     # compacting rounds over small tiles gives the single-round answer and step counts.
-    from jaxps._batched_lm import BatchedLM, solve_pixels
+    from jaxps._batched_lm import solve_pixels
 
     n = 3000
     a = jnp.linspace(0.5, 3.0, n)[None]
@@ -175,7 +203,7 @@ def test_solve_pixels_rounds_match_one_round():
 
     y0 = (jnp.full((n,), -1.2), jnp.ones((n,)))
     active = jnp.arange(n) % 5 != 0
-    lm = BatchedLM(rtol=1e-6, atol=1e-9)
+    lm = jaxps.BatchedLM(rtol=1e-6, atol=1e-9)
     one = solve_pixels(fn, y0, a, active, lm, max_steps=200, tile=n)
     many = solve_pixels(fn, y0, a, active, lm, max_steps=200, tile=256,
                         rounds=((3, 1.0), (5, 0.1), (None, 0.03)))

@@ -335,16 +335,47 @@ def _exact_pixels(data, s_max):
     return jnp.clip(s, 0, s_max)
 
 
-def _solve_one(data, s0, s_max, form, refit, solver, max_steps, min_samples):
-    """Fit one $s = \\sigma^2$ to the samples in `data` (weights zero for unused samples)."""
+def _sums(data):
+    """Per-pixel weighted sums $S_{cc}, S_{cg}, S_{gg}, S_{ci}, S_{gi}, S_{ii}$ (qualitative)."""
+    i, w, (c, g), _ = data
+    return tuple(sum0(w * x * y) for x, y in ((c, c), (c, g), (g, g), (c, i), (g, i), (i, i)))
+
+
+def _sum_residuals(s, sums):
+    """One residual per pixel whose square is that pixel's cost at $s$, albedo eliminated.
+
+    $\\sum_k (I_k - \\rho f_k)^2 = S_{ii} - F(t)$ with $t = B(s)/A(s)$ (see `_exact_pixels`),
+    so a global or regional fit needs six sums per pixel, not every sample: the solver's
+    Jacobian has N rows instead of K N. A constant $10^{-6} S_{ii}$ is added under the root
+    (it moves no minimum) to keep the root's derivative finite at a perfect fit.
+    """
+    scc, scg, sgg, sci, sgi, sii = sums
+    t = _ratio(s.astype(sii.dtype))
+    num = sci + t * sgi
+    den = scc + 2 * t * scg + t * t * sgg
+    fit = jnp.where(den > 0, num * num / jnp.where(den > 0, den, 1), 0)
+    used = sii > 0  # pixels with no sample (outside the mask) add nothing, gradient included
+    cost = jnp.where(used, jnp.maximum(sii - fit, 0) + 1e-6 * sii, 1)
+    return jnp.where(used, jnp.sqrt(cost), 0)
+
+
+def _solve_one(data, s0, s_max, form, refit, solver, max_steps, min_samples, reduced=False):
+    """Fit one $s = \\sigma^2$ to the samples in `data` (weights zero for unused samples).
+
+    `reduced`: solve on per-pixel sums (`_sum_residuals`), for global and regional fits with
+    the qualitative form and a refitted albedo. Not for a single pixel: there the one residual
+    $\\sqrt{\\text{cost}}$ makes Gauss–Newton a root finder for a cost that is not zero at
+    its minimum.
+    """
     i, w = data[0], data[1]
     dtype = i.dtype
     n = jnp.sum(w > 0)
 
-    def fn(s, args):
-        return _residuals(s, args, form, refit)
-
-    sol = optx.least_squares(fn, solver, jnp.asarray(s0, dtype), args=data,
+    if reduced:  # the same cost from six sums per pixel instead of every sample
+        fn, args = _sum_residuals, _sums(data)
+    else:
+        fn, args = (lambda s, a: _residuals(s, a, form, refit)), data
+    sol = optx.least_squares(fn, solver, jnp.asarray(s0, dtype), args=args,
                              max_steps=max_steps, throw=False)
     s = sol.value
     s_proj = jnp.clip(s, 0, s_max)
@@ -421,15 +452,16 @@ def _fit(images, normals, albedo, lights, mask, sample_mask, labels, s0, s_max, 
     data = (flat(i), flat(w), geo, albedo.reshape(-1))
     args = (s0, s_max, form, refit, solver, max_steps, min_samples)
 
+    reduced = form == "qualitative" and refit
     if per == "global":
-        out = _solve_one(data, *args)
+        out = _solve_one(data, *args, reduced=reduced)
     elif per == "region":
         lab = labels.reshape(-1)
 
         def region(r):
             sel = (lab == r).astype(dtype)
             d = (data[0], data[1] * sel[None], data[2], data[3])
-            return _solve_one(d, *args)
+            return _solve_one(d, *args, reduced=reduced)
 
         out = jax.vmap(region)(jnp.arange(n_labels))
     elif solver is None or isinstance(solver, BatchedLM):  # per pixel, image-wide kernels
