@@ -187,19 +187,20 @@ def speed(size):
     images = jnp.clip(images + 0.005 * jax.random.normal(jax.random.key(0), images.shape), 0, 1)
     m = surf.mask
     out = {"size": [size, size], "pixels_in_mask": int(m.sum()), "lights": 5}
-    out["l2_ps"] = _time(lambda: jaxps.photometric_stereo(images, lights, mask=m).normals)
+    out["l2_ps"] = _time(lambda: jaxps.photometric_stereo(images, lights, mask=m).normals, repeats=3)
     out["sigma_per_pixel"] = _time(lambda: jaxps.fit_roughness(
-        images, surf.normals, albedo, lights, mask=m, per="pixel").sigma)
+        images, surf.normals, albedo, lights, mask=m, per="pixel").sigma, repeats=3)
     out["sigma_global"] = _time(lambda: jaxps.fit_roughness(
-        images, surf.normals, albedo, lights, mask=m).sigma)
-    res = {}
-    out["oren_nayar_ps_pixel"] = _time(lambda: res.setdefault("r", jaxps.photometric_stereo(
-        images, lights, mask=m, method="oren_nayar")).normals)
+        images, surf.normals, albedo, lights, mask=m).sigma, repeats=3)
+    out["oren_nayar_ps_pixel"] = _time(lambda: jaxps.photometric_stereo(
+        images, lights, mask=m, method="oren_nayar").normals, repeats=3)
     r = jaxps.photometric_stereo(images, lights, mask=m, method="oren_nayar")
     out["oren_nayar_ps_pixel"]["max_steps_used"] = int(r.info["steps"].max())
     out["oren_nayar_ps_pixel"]["status"] = jaxps.status_counts(np.asarray(r.status)[m])
     out["oren_nayar_ps_fixed_sigma"] = _time(lambda: jaxps.photometric_stereo(
-        images, lights, mask=m, method="oren_nayar", sigma=0.3).normals)
+        images, lights, mask=m, method="oren_nayar", sigma=0.3).normals, repeats=3)
+    out["oren_nayar_ps_global_sigma"] = _time(lambda: jaxps.photometric_stereo(
+        images, lights, mask=m, method="oren_nayar", sigma="global").normals, repeats=3)
     # The same per-pixel sigma fit through optimistix under vmap, on a small crop (slow path).
     c = 64
     win = slice(size // 2 - c // 2, size // 2 + c // 2)
@@ -220,7 +221,7 @@ def speed(size):
     # form or a given albedo), for comparison with the closed form above.
     out["sigma_per_pixel_batched_lm"] = _time(lambda: jaxps.fit_roughness(
         images, surf.normals, albedo, lights, mask=m, per="pixel",
-        solver=jaxps.BatchedLM()).sigma)
+        solver=jaxps.BatchedLM()).sigma, repeats=3)
     return out
 
 
