@@ -157,6 +157,7 @@ def speed(n_samples=100_000, h=700, w=850, steps=30):
                    "is 30); fit times include feature extraction and sampling"}
     # zero tolerances: LM never stops early, so the time is for exactly max_steps=30 steps
     solver = optx.LevenbergMarquardt(rtol=0.0, atol=0.0, linear_solver=lx.Normal(lx.Cholesky()))
+    models = {}
     for method in ("mlp", "mlp_ratio"):
         kw = dict(mask=scene.mask, method=method, n_samples=n_samples, solver=solver,
                   max_steps=steps)
@@ -171,36 +172,122 @@ def speed(n_samples=100_000, h=700, w=850, steps=30):
         out[f"train_{method}_first_s"] = first
         out[f"train_{method}_s"] = second
         out[f"train_{method}_steps"] = model.fit.steps
+        models[method] = model
         print(f"train {method}: first call (compile) {first:.2f} s, second {second:.2f} s, "
               f"{model.fit.steps} steps", flush=True)
-    light = jaxps.lights_from_angles([30.0], [10.0])
-    for method in ("mlp_ratio", "lambertian"):
-        m = model if method == "mlp_ratio" else jaxps.fit_brdf(
-            scene.images, scene.normals, scene.albedo, lights, mask=scene.mask, method=method)
-        t = time.perf_counter()
-        jaxps.relight(m, scene.normals, scene.albedo, light).block_until_ready()
-        compile_s = time.perf_counter() - t
-        runs = []
-        for _ in range(10):
-            t = time.perf_counter()
-            jaxps.relight(m, scene.normals, scene.albedo, light).block_until_ready()
-            runs.append(time.perf_counter() - t)
-        out[f"relight_{method}_compile_s"] = compile_s
-        out[f"relight_{method}_ms_median"] = 1e3 * float(np.median(runs))
-        out[f"relight_{method}_ms_min"] = 1e3 * float(np.min(runs))
-        print(f"relight {method} {h}x{w}: compile {compile_s:.2f} s, "
-              f"median {1e3 * np.median(runs):.1f} ms, min {1e3 * np.min(runs):.1f} ms", flush=True)
-    # the Lambertian baseline rendered by the core library, same image
-    normals, albedo = scene.normals, scene.albedo
-    jaxps.render_lambertian(normals, albedo, light).block_until_ready()
-    runs = []
-    for _ in range(10):
-        t = time.perf_counter()
-        jaxps.render_lambertian(normals, albedo, light).block_until_ready()
-        runs.append(time.perf_counter() - t)
-    out["render_lambertian_ms_median"] = 1e3 * float(np.median(runs))
-    print(f"render_lambertian: median {1e3 * np.median(runs):.1f} ms", flush=True)
+    models["lambertian"] = jaxps.fit_brdf(scene.images, scene.normals, scene.albedo, lights,
+                                          mask=scene.mask, method="lambertian")
+    out.update(relight_speed(models, scene.normals, scene.albedo))
     return out
+
+
+def relight_speed(models, normals, albedo, rounds=15):
+    """Relight one image (700x850 in `speed`) under one new light with each model, and the pieces of the MLP
+    relight apart, all in one process: rounds interleave the methods so that the load of a
+    shared machine hits them alike; median and min over rounds, compile (first call) apart."""
+    import jax.numpy as jnp
+    from jax.scipy.ndimage import map_coordinates
+
+    from jaxps._brdf import _mlp, _mlp_elementwise, _predict_one, _support_weight
+    from jaxps._brdf_features import (
+        _angles_elementwise,
+        _atan2_nonneg,
+        _sample_angles,
+        pixel_coordinates,
+    )
+
+    normals, albedo = jnp.asarray(normals), jnp.asarray(albedo)
+    h, w, _ = normals.shape
+    light = jnp.asarray(jaxps.lights_from_angles([30.0], [10.0]), normals.dtype)
+    m = models["mlp_ratio"]
+    params = m.params
+
+    @jax.jit
+    def features_per_sample(n, lights):  # the previous layout: vmap of a 3-vector kernel
+        n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+        view = jnp.array([0, 0, 1], n.dtype)
+        one = jax.vmap(jax.vmap(_sample_angles, (0, None, None)), (None, 0, None))
+        return one(n.reshape(-1, 3), lights, view)
+
+    @jax.jit
+    def relight_per_sample(n, rho, lights):  # the previous relight: vmap of _predict_one
+        ang = features_per_sample(n, lights).reshape(-1, 3)
+        xy = jnp.broadcast_to(pixel_coordinates(h, w).reshape(1, -1, 2),
+                              (lights.shape[0], h * w, 2)).reshape(-1, 2)
+        f = jnp.concatenate([ang, xy], -1)
+        r = jnp.broadcast_to(rho.reshape(1, -1), (lights.shape[0], h * w)).reshape(-1)
+        return jax.vmap(lambda fs, a: _predict_one(params, fs, a, m.box_lo, m.box_hi, m.support,
+                                                   m.rho_ref, m.bound, m.cell, True, True,
+                                                   True))(f, r)
+
+    ti, tr, da, _ = jax.jit(_angles_elementwise)(normals, light)
+    tr = jnp.broadcast_to(tr, ti.shape)
+    rows = [ti, tr, da, ti * 0.5, tr * 0.5]
+    z = jnp.concatenate(rows)  # (5, P) feature-major
+    zt = z.T  # (P, 5) sample-major
+
+    def gemm(p, z):
+        for wt, b in p[:-1]:
+            z = jnp.tanh(wt @ z + b[:, None])
+        return (p[-1][0] @ z + p[-1][1][:, None])[0]
+
+    cases = {
+        "relight_mlp": lambda: jaxps.relight(models["mlp"], normals, albedo, light),
+        "relight_mlp_ratio": lambda: jaxps.relight(m, normals, albedo, light),
+        "relight_lambertian": lambda: jaxps.relight(models["lambertian"], normals, albedo, light),
+        "render_lambertian": lambda: jaxps.render_lambertian(normals, albedo, light),
+        "relight_mlp_ratio_per_sample (previous kernel)": partial_jit(
+            relight_per_sample, normals, albedo, light),
+        "piece_features_elementwise (theta_i, theta_r, delta_alpha)": partial_jit(
+            _angles_elementwise, normals, light),
+        "piece_features_per_sample_vmap (previous, XLA atan2)": partial_jit(
+            features_per_sample, normals, light),
+        "piece_atan2_xla": partial_jit(jnp.arctan2, jnp.abs(ti), tr - 0.5),
+        "piece_atan2_polynomial": partial_jit(_atan2_nonneg, jnp.abs(ti), tr - 0.5),
+        "piece_tanh_xla": partial_jit(jnp.tanh, ti),
+        "piece_mlp_elementwise": partial_jit(_mlp_elementwise, params, rows),
+        "piece_mlp_gemm_feature_major": partial_jit(gemm, params, z),
+        "piece_mlp_vmap_per_sample (previous)": partial_jit(
+            jax.vmap(_mlp, (None, 0)), params, zt),
+        "piece_support_gather": partial_jit(
+            lambda s, a, b, c: _support_weight(s, (a, b, c), m.cell), m.support, ti, tr, da),
+        "piece_support_map_coordinates_vmap (previous)": partial_jit(
+            jax.vmap(lambda s, a: map_coordinates(s, list(a / m.cell - 0.5), order=1,
+                                                  mode="nearest"), (None, 0)),
+            m.support, jnp.stack([ti, tr, da], -1).reshape(-1, 3)),
+    }
+    compile_s, runs = {}, {name: [] for name in cases}
+    for name, fn in cases.items():
+        t = time.perf_counter()
+        jax.block_until_ready(fn())
+        compile_s[name] = time.perf_counter() - t
+    for _ in range(rounds):
+        for name, fn in cases.items():
+            t = time.perf_counter()
+            jax.block_until_ready(fn())
+            runs[name].append(time.perf_counter() - t)
+    out = {"relight_image": [h, w], "relight_rounds": rounds, "relight": {}}
+    for name in cases:
+        r = np.asarray(runs[name]) * 1e3
+        out["relight"][name] = {"first_call_s": compile_s[name], "ms_median": float(np.median(r)),
+                                "ms_min": float(r.min())}
+        print(f"{name:58s} first {compile_s[name]:6.2f} s  median {np.median(r):7.2f} ms  "
+              f"min {r.min():7.2f} ms", flush=True)
+    med = {n: v["ms_median"] for n, v in out["relight"].items()}
+    for name in ("relight_mlp", "relight_mlp_ratio"):
+        out[f"{name}_ms_median"] = med[name]
+        out[f"{name}_over_lambertian"] = med[name] / med["relight_lambertian"]
+    out["relight_lambertian_ms_median"] = med["relight_lambertian"]
+    out["render_lambertian_ms_median"] = med["render_lambertian"]
+    out["relight_previous_kernel_over_new"] = (
+        med["relight_mlp_ratio_per_sample (previous kernel)"] / med["relight_mlp_ratio"])
+    return out
+
+
+def partial_jit(fn, *args):
+    """A zero-argument callable running `jax.jit(fn)(*args)` (compiled once)."""
+    jitted = jax.jit(fn)
+    return lambda: jitted(*args)
 
 
 def loop(subject="yaleB01", set_name="cross"):

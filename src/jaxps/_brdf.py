@@ -54,7 +54,6 @@ from typing import NamedTuple
 
 import equinox as eqx
 import jax
-import jax.scipy.ndimage
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -65,7 +64,12 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
-from ._brdf_features import _features, brdf_features
+from ._brdf_features import (
+    _angles_elementwise,
+    _features,
+    brdf_features,
+    pixel_coordinates,
+)
 
 __all__ = [
     "BRDF_METHODS",
@@ -154,16 +158,36 @@ def _predict_one(params, f, rho, box_lo, box_hi, support, rho_ref, bound, cell, 
         return amp * _mlp(params, z)
     clamped = jnp.clip(u, box_lo, box_hi)
     z = jnp.concatenate([2 * (clamped - box_lo) / span - 1, xy])
-    weight = _support_weight(support, f[:3], cell)
+    weight = _support_weight(support, (f[0], f[1], f[2]), cell)
     lambert = rho * jnp.maximum(jnp.cos(f[0]), 0)
     return lambert + amp * weight * bound * jnp.tanh(_mlp(params, z))
 
 
 def _support_weight(support, angles, cell):
     """Trilinear interpolation of the 0/1 occupancy grid at (θi, θr, Δα): 1 amid training data,
-    0 one cell away from it."""
-    coords = [angles[i] / cell - 0.5 for i in range(3)]
-    return jax.scipy.ndimage.map_coordinates(support, coords, order=1, mode="nearest")
+    0 one cell away from it. `angles` is a sequence of three arrays of one shape (or scalars).
+
+    Cell centres sit at (j + 1/2) `cell`; indices are clamped to the grid (the semantics of
+    `jax.scipy.ndimage.map_coordinates(support, angles / cell - 1/2, order=1, mode="nearest")`,
+    written as eight gathers from the flat grid so it stays one fused elementwise kernel).
+    """
+    shape = support.shape
+    flat = support.reshape(-1)
+    nodes = []
+    for a, size in zip(angles, shape):
+        c = a / cell - 0.5
+        lower = jnp.floor(c)
+        upper_weight = c - lower
+        i = lower.astype(jnp.int32)
+        nodes.append(((jnp.clip(i, 0, size - 1), 1 - upper_weight),
+                      (jnp.clip(i + 1, 0, size - 1), upper_weight)))
+    out = None
+    for i0, w0 in nodes[0]:
+        for i1, w1 in nodes[1]:
+            for i2, w2 in nodes[2]:
+                term = (w0 * w1 * w2) * flat[(i0 * shape[1] + i1) * shape[2] + i2]
+                out = term if out is None else out + term
+    return out
 
 
 def _support_grid(angles, cell, min_count):
@@ -472,25 +496,54 @@ def relight(
 
 @eqx.filter_jit
 def _relight_jit(model, normals, albedo, lights):
+    """`(K, H, W)` images, feature-major: every image-sized quantity is a `(K, P)` array
+    (P = H W; per-pixel terms `(1, P)`), so the whole render is elementwise work that XLA fuses
+    and vectorises. The same model as `_predict_one` (tests/test_brdf.py checks it against a
+    numpy reference): the small matrix products of the MLP are unrolled into multiply-adds over
+    whole arrays (a per-sample `w @ z` under `vmap`, or a `(10, 10) @ (10, P)` GEMM, were 3-10x
+    slower on the CPU), and cos θi is n·l."""
     dtype = normals.dtype
+    k = lights.shape[0]
+    h, w, _ = normals.shape
+    theta_i, theta_r, delta, cos_i = _angles_elementwise(normals, lights)
+    rho = albedo.reshape(1, -1)
+    lambert = rho * jnp.maximum(cos_i, 0)
     if model.method == "lambertian":
-        unit = normals / jnp.maximum(jnp.linalg.norm(normals, axis=-1, keepdims=True),
-                                     jnp.asarray(1e-12, dtype))
-        return albedo[None] * jnp.maximum(jnp.einsum("kc,hwc->khw", lights, unit), 0)
-    f = _features(normals, lights)
+        return lambert.reshape(k, h, w)
     params = jax.tree.map(lambda a: a.astype(dtype), model.params)
-    ratio = model.method == "mlp_ratio"
+    box_lo, box_hi = model.box_lo.astype(dtype), model.box_hi.astype(dtype)
+    span = jnp.maximum(box_hi - box_lo, jnp.asarray(1e-6, dtype))
+    u = [theta_i - theta_r, theta_i + theta_r, delta]
+    if model.lambertian_base:
+        u = [jnp.clip(u[j], box_lo[j], box_hi[j]) for j in range(3)]
+    z = [2 * (u[j] - box_lo[j]) / span[j] - 1 for j in range(3)]
+    xy = pixel_coordinates(h, w, dtype).reshape(1, -1, 2)
+    if not model.use_xy:
+        xy = jnp.zeros_like(xy)
+    g = _mlp_elementwise(params, [*z, xy[..., 0], xy[..., 1]])
+    amp = rho if model.method == "mlp_ratio" else model.rho_ref.astype(dtype)
+    if not model.lambertian_base:
+        out = amp * g
+    else:
+        weight = _support_weight(model.support.astype(dtype), (theta_i, theta_r, delta),
+                                 model.cell)
+        out = lambert + amp * weight * model.bound * jnp.tanh(g)
+    return jnp.broadcast_to(out, (k, h * w)).reshape(k, h, w)
 
-    def one(fs, rho):
-        return _predict_one(params, fs, rho, model.box_lo.astype(dtype),
-                            model.box_hi.astype(dtype), model.support.astype(dtype),
-                            model.rho_ref.astype(dtype), model.bound, model.cell,
-                            model.lambertian_base, ratio,
-                            model.use_xy)
 
-    k, h, w, _ = f.shape
-    rho = jnp.broadcast_to(albedo, (k, h, w)).reshape(-1)
-    return jax.vmap(one)(f.reshape(-1, 5), rho).reshape(k, h, w)
+def _mlp_elementwise(params, rows):
+    """`_mlp` on a list of input arrays (one per input unit, broadcasting against each other):
+    every unit is a sum of scalar-times-array terms, so the network is elementwise."""
+    for layer, (w, b) in enumerate(params):
+        n_out, n_in = w.shape
+        out = []
+        for o in range(n_out):
+            acc = b[o] + w[o, 0] * rows[0]
+            for i in range(1, n_in):
+                acc = acc + w[o, i] * rows[i]
+            out.append(acc)
+        rows = out if layer == len(params) - 1 else [jnp.tanh(a) for a in out]
+    return rows[0]
 
 
 def extrapolation_mask(
@@ -515,9 +568,12 @@ def extrapolation_mask(
     if model.method == "delaunay":
         ang = np.asarray(f[..., :3], np.float64)
         return jnp.asarray(model.interpolator.outside(ang.reshape(-1, 3)).reshape(ang.shape[:3]))
-    weight = jax.vmap(_support_weight, in_axes=(None, 0, None))(
-        model.support.astype(f.dtype), f.reshape(-1, 5)[:, :3], model.cell)
-    return (weight < 0.5).reshape(f.shape[:3])
+    return _support_weight_jit(model.support.astype(f.dtype), f, model.cell) < 0.5
+
+
+@eqx.filter_jit
+def _support_weight_jit(support, f, cell):
+    return _support_weight(support, (f[..., 0], f[..., 1], f[..., 2]), cell)
 
 
 _ = brdf_features  # re-exported from jaxps
