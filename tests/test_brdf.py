@@ -279,6 +279,39 @@ def test_mlp_degrades_to_lambert_where_flagged(scene, fitted):
     assert np.all(np.abs(got - lam)[flag] <= bound[flag] + 1e-6)
 
 
+def test_loo_shrink_keeps_real_reflectance_and_drops_frame_gains(scene):
+    """`shrink="loo"` keeps the correction on a non-Lambertian scene and removes it when the
+    only departure from Lambert's law is an unknown brightness per frame (Yale B's case)."""
+    s = scene
+    gains = np.array([1.0, 1.15, 0.9, 0.85, 1.1], np.float32)[:, None, None]
+    lam_train = np.asarray(jaxps.render_lambertian(s["normals"], s["albedo"], s["train"]))
+    lam_test = np.asarray(jaxps.render_lambertian(s["normals"], s["albedo"], s["test"]))
+    kw = dict(mask=s["mask"], method="mlp_ratio", key=jax.random.key(0), n_samples=10**6,
+              max_steps=6, shrink="loo")
+    results = {}
+    for name, images, truth in (("brdf", s["images"], s["truth"]),
+                                ("gains", lam_train * gains, lam_test)):
+        ps = jaxps.photometric_stereo(images, s["train"], mask=s["mask"])
+        model = jaxps.fit_brdf(images, ps.normals, ps.albedo, s["train"], **kw)
+        lam = jaxps.fit_brdf(images, ps.normals, ps.albedo, s["train"], mask=s["mask"],
+                             method="lambertian")
+        loo = model.fit.loo_rmse
+        assert loo["shrunk"] <= min(loo["lambertian"], loo["full"]) + 1e-9
+        assert model.bound == pytest.approx(0.5 * model.fit.shrink)
+        results[name] = (model.fit.shrink,
+                         rmse(jaxps.relight(model, ps.normals, ps.albedo, s["test"]), truth,
+                              s["mask"]),
+                         rmse(jaxps.relight(lam, ps.normals, ps.albedo, s["test"]), truth,
+                              s["mask"]))
+    shrink, err, err_lambert = results["brdf"]
+    assert shrink > 0.5 and err < 0.97 * err_lambert, results  # measured 0.0080 vs 0.0084
+    shrink, err, err_lambert = results["gains"]
+    assert shrink < 0.2 and err <= err_lambert * 1.01, results
+    with pytest.raises(ValueError, match="shrink"):
+        jaxps.fit_brdf(s["images"], s["normals"], s["albedo"], s["train"], method="delaunay",
+                       shrink="loo")
+
+
 # --------------------------------------------------------------------------- BRDF in the loop
 
 

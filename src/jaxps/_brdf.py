@@ -93,6 +93,11 @@ class BRDFFit(NamedTuple):
     - `n_samples`: training samples used.
     - `seconds`: wall time of the fit (compile included).
     - `message`: the solver's result message.
+    - `shrink`: the factor $s$ the correction was scaled by (`fit_brdf(..., shrink="loo")`;
+      1.0 without shrinkage). `mse`, `rmse`, `r` are those of the shrunk model.
+    - `loo_rmse`: with `shrink="loo"`, the leave-one-light-out RMSE over the K left-out frames
+      pooled, as `{"lambertian": ..., "full": ..., "shrunk": ...}` (correction scaled by 0, 1
+      and $s$); else None.
     """
 
     steps: int
@@ -103,6 +108,8 @@ class BRDFFit(NamedTuple):
     n_samples: int
     seconds: float
     message: str
+    shrink: float = 1.0
+    loo_rmse: dict | None = None
 
 
 class BRDFModel(eqx.Module):
@@ -332,6 +339,8 @@ def fit_brdf(
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 30,
     saturation: float = 1.0,
+    shrink: str | None = None,
+    ps_method: str = "l2",
 ) -> BRDFModel:
     """Fit a BRDF to K images of one object with known normals, albedo and lights.
 
@@ -358,6 +367,17 @@ def fit_brdf(
       `LevenbergMarquardt(rtol=1e-4, atol=1e-6, linear_solver=lineax.Normal(lineax.Cholesky()))`).
     - `max_steps`: the solver's step limit; one LM step uses every sample once (an epoch; the
       paper trained ~200). 30 keeps 100,000 samples under ~30 s on 2 CPU cores.
+    - `shrink`: `"loo"` scales the fitted correction by a factor $s \\in [0, 1]$ chosen by
+      leave-one-light-out cross-validation on the training frames only: for each frame $j$,
+      normals and albedo are re-estimated from the other K-1 frames
+      (`photometric_stereo(method=ps_method)`, K >= 4), the same model is fitted on those K-1
+      frames, and its correction $c_j$ and Lambert's prediction $L_j$ of the left-out frame are
+      compared with the frame $I_j$; $s$ minimises the pooled squared error
+      $\\sum_j \\lVert I_j - L_j - s\\, c_j \\rVert^2$ (closed form, clipped to [0, 1]; 0 when the
+      folds predict no correction). $s = 0$ is Lambert's law: the model is no more than the
+      data justify. Costs K + 1 fits. MLP methods with `lambertian_base=True` only.
+    - `ps_method`: the photometric-stereo method for the folds of `shrink="loo"` (use the one
+      that gave `normals` and `albedo`).
 
     **Returns:** a `BRDFModel`; `model.fit` is a `BRDFFit` (steps, converged, mse, rmse, R).
 
@@ -367,7 +387,15 @@ def fit_brdf(
     t0 = time.perf_counter()
     if method not in BRDF_METHODS:
         raise ValueError(f"method must be one of {BRDF_METHODS}, got {method!r}")
+    if shrink not in (None, "loo"):
+        raise ValueError(f"shrink must be None or 'loo', got {shrink!r}")
+    if shrink is not None and (method not in ("mlp", "mlp_ratio") or not lambertian_base):
+        raise ValueError("shrink='loo' scales the correction to Lambert's law: it needs "
+                         "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
+    if shrink is not None and images.shape[0] < 4:
+        raise ValueError(f"shrink='loo' needs K >= 4 frames (K-1 >= 3 for photometric stereo), "
+                         f"got {images.shape[0]}")
     dtype = images.dtype
     key = jax.random.key(0) if key is None else key
     k, h, w = images.shape
@@ -417,13 +445,53 @@ def fit_brdf(
         max_steps=int(max_steps))
     model = BRDFModel(method, params, **common)
     msg = "converged" if bool(ok) else f"stopped at max_steps={max_steps} or failed"
-    return _with_fit(model, res + target, target, int(steps), bool(ok), t0, msg)
+    pred = res + target
+    if shrink is None:
+        return _with_fit(model, pred, target, int(steps), bool(ok), t0, msg)
+    options = dict(method=method, key=key, n_samples=n_samples, hidden=hidden, bound=bound,
+                   support_deg=support_deg, min_count=min_count, lambertian_base=True,
+                   use_xy=use_xy, solver=solver, max_steps=max_steps, saturation=saturation)
+    factor, loo = _loo_shrink(images, lights, mask, ps_method, options)
+    lambert = rho * jnp.maximum(jnp.cos(f[:, 0]), 0)
+    model = dataclasses.replace(model, bound=float(bound) * factor)
+    msg += f"; correction scaled by {factor:.3f} (leave-one-light-out)"
+    return _with_fit(model, lambert + factor * (pred - lambert), target, int(steps), bool(ok), t0,
+                     msg, shrink=factor, loo_rmse=loo)
 
 
-def _with_fit(model, pred, target, steps, converged, t0, message):
+def _loo_shrink(images, lights, mask, ps_method, options):
+    """The shrinkage factor of `fit_brdf(..., shrink="loo")` and the pooled LOO RMSEs."""
+    from ._ps import photometric_stereo
+
+    k = images.shape[0]
+    num = den = 0.0
+    sums = {"lambertian": [0.0, 0], "full": [0.0, 0]}
+    folds = []
+    for j in range(k):
+        keep = np.array([i for i in range(k) if i != j])
+        ps = photometric_stereo(images[keep], lights[keep], mask=mask, method=ps_method)
+        model = fit_brdf(images[keep], ps.normals, ps.albedo, lights[keep], mask=mask, **options)
+        full = np.asarray(relight(model, ps.normals, ps.albedo, lights[j]), np.float64)[0]
+        lam = np.asarray(relight(dataclasses.replace(model, bound=0.0), ps.normals, ps.albedo,
+                                 lights[j]), np.float64)[0]
+        obs = np.asarray(images[j], np.float64)
+        ok = mask & np.isfinite(obs) & (obs < options["saturation"]) & (np.asarray(ps.albedo) > 0)
+        resid, corr = (obs - lam)[ok], (full - lam)[ok]
+        num += float(resid @ corr)
+        den += float(corr @ corr)
+        folds.append((resid, corr))
+    factor = float(np.clip(num / den, 0.0, 1.0)) if den > 0 else 0.0
+    resid = np.concatenate([r for r, _ in folds])
+    corr = np.concatenate([c for _, c in folds])
+    loo = {name: float(np.sqrt(np.mean((resid - s * corr) ** 2)))
+           for name, s in (("lambertian", 0.0), ("full", 1.0), ("shrunk", factor))}
+    return factor, loo
+
+
+def _with_fit(model, pred, target, steps, converged, t0, message, **extra):
     mse, rmse, r = _fit_stats(pred, target)
     fit = BRDFFit(steps, converged, mse, rmse, r, int(np.size(target)),
-                  time.perf_counter() - t0, message)
+                  time.perf_counter() - t0, message, **extra)
     return dataclasses.replace(model, fit=fit)
 
 
