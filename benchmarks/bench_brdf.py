@@ -4,7 +4,8 @@
         [--part accuracy|speed|loop|all]
 
 Writes benchmarks/results/brdf.json and brdf.png (`--part loop`: brdf_loop.json, BRDF-in-the-loop
-photometric stereo against a many-light reference). Accuracy: for each subject and training set,
+photometric stereo against a many-light reference; `--part gains`: brdf_gains.json, training on
+frames corrected by estimated per-frame light intensities). Accuracy: for each subject and training set,
 fit normals and albedo by L2 photometric stereo on the five training frames (ambient frame
 subtracted), fit every BRDF method on the same frames, and relight every other light within 60
 (and 30) degrees of the view axis; RMSE in gray levels (0-255) over the face mask. Speed: LM
@@ -301,6 +302,56 @@ def partial_jit(fn, *args):
     return lambda: jitted(*args)
 
 
+def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
+    """Per-frame light intensities of the five training frames (idea: train every method on
+    gain-corrected frames and the normals they give). For each way of estimating them
+    (`jaxps.intensity_estimate`: none, mean, frontal, semi_calibrated), divide the training
+    frames by them, run L2 photometric stereo, and report the normals' angular error against
+    L2 PS over every light within 50 deg (diagnostic only: nothing is selected with it) and the
+    held-out RMSE of `lambertian` and `mlp_ratio` fitted on the corrected frames."""
+    out = []
+    for subject in subjects:
+        images, angles = load_yale(subject)
+        lights = jaxps.lights_from_angles(*np.array(angles, float).T)
+        zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
+        ref_idx = [i for i in range(len(angles)) if zenith[i] <= 50]
+        ref = jaxps.photometric_stereo(images[ref_idx], lights[ref_idx])
+        train = [angles.index(a) for a in TRAIN_SETS[set_name]]
+        test60 = [i for i in range(len(angles)) if i not in train and zenith[i] <= 60]
+        near = np.array([zenith[i] <= 30 for i in test60])
+        mask = face_mask(images[train], jaxps.photometric_stereo(images[train], lights[train]))
+        obs = images[test60]
+        sel60 = np.broadcast_to(mask, obs.shape)
+        sel30 = sel60 & near[:, None, None]
+        row = {"subject": subject, "train_set": set_name, "reference_lights": len(ref_idx),
+               "estimates": {}}
+        for how in ("none", "mean", "frontal", "semi_calibrated"):
+            e = np.asarray(jaxps.intensity_estimate(images[train], lights[train], mask=mask,
+                                                    method=how), np.float64)
+            frames = images[train] / e[:, None, None].astype(np.float32)
+            ps = jaxps.photometric_stereo(frames, lights[train])
+            st = jaxps.evaluate.angular_stats(ps.normals, ref.normals, mask=mask)
+            r = {"intensities": e.tolist(), "normals_median_deg": st["median_deg"],
+                 "normals_mean_deg": st["mean_deg"], "methods": {}}
+            for name in ("lambertian", "mlp_ratio"):
+                model = jaxps.fit_brdf(frames, ps.normals, ps.albedo, lights[train], mask=mask,
+                                       key=jax.random.key(0), **METHODS[name])
+                pred = np.asarray(jaxps.relight(model, ps.normals, ps.albedo, lights[test60],
+                                                mask=mask))
+                r["methods"][name] = {
+                    "rmse_60": rmse(pred, obs, sel60), "rmse_30": rmse(pred, obs, sel30),
+                    "rmse_60_gain_oracle": gain_rmse(pred, obs, mask),
+                    "rmse_30_gain_oracle": gain_rmse(pred, obs, mask, near)}
+                m = r["methods"][name]
+                print(f"{subject} {how:15s} e {np.round(e, 3)} normals median "
+                      f"{st['median_deg']:5.2f} {name:10s} rmse60/30 {m['rmse_60']:6.2f} "
+                      f"{m['rmse_30']:6.2f} gain {m['rmse_60_gain_oracle']:6.2f} "
+                      f"{m['rmse_30_gain_oracle']:6.2f}", flush=True)
+            row["estimates"][how] = r
+        out.append(row)
+    return out
+
+
 def loop(subject="yaleB01", set_name="cross"):
     """BRDF-in-the-loop PS vs L2 PS, both from the five training frames, against L2 PS over every
     light within 50 degrees of the view axis (the many-light reference)."""
@@ -364,7 +415,8 @@ def chart(acc, path):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=("accuracy", "speed", "loop", "all"), default="all")
+    parser.add_argument("--part", choices=("accuracy", "speed", "loop", "gains", "all"),
+                        default="all")
     parser.add_argument("--subjects", nargs="+", default=["yaleB01", "yaleB02"])
     parser.add_argument("--sets", nargs="+", default=["cross", "alt"])
     parser.add_argument("--methods", nargs="+", default=None, choices=list(METHODS),
@@ -375,8 +427,8 @@ def main():
                         "'speed_quick'; the stored accuracy figures are left as they are)")
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    # the BRDF-in-the-loop part writes its own file (it can run beside the others)
-    path = OUT / ("brdf_loop.json" if args.part == "loop" else "brdf.json")
+    # the BRDF-in-the-loop and gains parts write their own files (they can run beside the others)
+    path = OUT / {"loop": "brdf_loop.json", "gains": "brdf_gains.json"}.get(args.part, "brdf.json")
     res = json.loads(path.read_text()) if path.exists() else {}
     res["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(),
                       "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
@@ -398,9 +450,11 @@ def main():
         chart(res["accuracy"], OUT / "brdf.png")
     if args.part in ("speed", "all"):
         res["speed"] = speed()
+    if args.part == "gains":
+        res["gains"] = gains(tuple(args.subjects))
     if args.part == "loop":
         res["loop"] = loop()
-    else:
+    elif args.part != "gains":
         res["points"] = points(res)
     path.write_text(json.dumps(res, indent=1))
     print(f"wrote {path}")
