@@ -95,9 +95,11 @@ class BRDFFit(NamedTuple):
     - `message`: the solver's result message.
     - `shrink`: the factor $s$ the correction was scaled by (`fit_brdf(..., shrink="loo")`;
       1.0 without shrinkage). `mse`, `rmse`, `r` are those of the shrunk model.
-    - `loo_rmse`: with `shrink="loo"`, the leave-one-light-out RMSE over the K left-out frames
-      pooled, as `{"lambertian": ..., "full": ..., "shrunk": ...}` (correction scaled by 0, 1
-      and $s$); else None.
+    - `loo_rmse`: with `shrink="loo"`, the leave-one-light-out report: RMSE over the K left-out
+      frames pooled, `"lambertian"`, `"full"`, `"shrunk"` (correction scaled by 0, 1 and $s$);
+      `"pooled_factor"` ($s^*$ before the one-SE rule), `"mse_diff_mean"`, `"mse_diff_se"`
+      (per-fold MSE change at $s^*$ against Lambert, and its standard error) and the per-fold
+      RMSEs `"folds_lambertian"`, `"folds_full"`; else None.
     """
 
     steps: int
@@ -372,10 +374,11 @@ def fit_brdf(
       normals and albedo are re-estimated from the other K-1 frames
       (`photometric_stereo(method=ps_method)`, K >= 4), the same model is fitted on those K-1
       frames, and its correction $c_j$ and Lambert's prediction $L_j$ of the left-out frame are
-      compared with the frame $I_j$; $s$ minimises the pooled squared error
+      compared with the frame $I_j$; $s^*$ minimises the pooled squared error
       $\\sum_j \\lVert I_j - L_j - s\\, c_j \\rVert^2$ (closed form, clipped to [0, 1]; 0 when the
-      folds predict no correction). $s = 0$ is Lambert's law: the model is no more than the
-      data justify. Costs K + 1 fits. MLP methods with `lambertian_base=True` only.
+      folds predict no correction), and is kept only if its per-fold gain over Lambert's law
+      exceeds one standard error (else $s = 0$, Lambert's law: the model is no more than the
+      data justify). Costs K + 1 fits. MLP methods with `lambertian_base=True` only.
     - `ps_method`: the photometric-stereo method for the folds of `shrink="loo"` (use the one
       that gave `normals` and `albedo`).
 
@@ -460,12 +463,18 @@ def fit_brdf(
 
 
 def _loo_shrink(images, lights, mask, ps_method, options):
-    """The shrinkage factor of `fit_brdf(..., shrink="loo")` and the pooled LOO RMSEs."""
+    """The shrinkage factor of `fit_brdf(..., shrink="loo")` and its leave-one-light-out report.
+
+    $s^*$ minimises the pooled squared error over the folds (closed form, clipped to [0, 1]).
+    It is kept only if it beats Lambert's law ($s = 0$) by more than one standard error of the
+    per-fold differences of mean squared error (the "one-standard-error rule": the simplest
+    model within one SE of the best; Hastie, Tibshirani & Friedman, *The Elements of Statistical
+    Learning*, 2nd ed., §7.10). With five lights the folds differ a lot; a pooled gain carried
+    by one fold is not evidence that the correction transfers to new lights.
+    """
     from ._ps import photometric_stereo
 
     k = images.shape[0]
-    num = den = 0.0
-    sums = {"lambertian": [0.0, 0], "full": [0.0, 0]}
     folds = []
     for j in range(k):
         keep = np.array([i for i in range(k) if i != j])
@@ -476,15 +485,24 @@ def _loo_shrink(images, lights, mask, ps_method, options):
                                  lights[j]), np.float64)[0]
         obs = np.asarray(images[j], np.float64)
         ok = mask & np.isfinite(obs) & (obs < options["saturation"]) & (np.asarray(ps.albedo) > 0)
-        resid, corr = (obs - lam)[ok], (full - lam)[ok]
-        num += float(resid @ corr)
-        den += float(corr @ corr)
-        folds.append((resid, corr))
-    factor = float(np.clip(num / den, 0.0, 1.0)) if den > 0 else 0.0
+        folds.append(((obs - lam)[ok], (full - lam)[ok]))
+    num = sum(float(r @ c) for r, c in folds)
+    den = sum(float(c @ c) for _, c in folds)
+    pooled = float(np.clip(num / den, 0.0, 1.0)) if den > 0 else 0.0
+
+    def fold_mse(s):
+        return np.array([np.mean((r - s * c) ** 2) for r, c in folds])
+
+    diff = fold_mse(pooled) - fold_mse(0.0)  # < 0: the correction helps that fold
+    se = float(np.std(diff, ddof=1) / math.sqrt(k))
+    factor = pooled if float(np.mean(diff)) + se < 0 else 0.0
     resid = np.concatenate([r for r, _ in folds])
     corr = np.concatenate([c for _, c in folds])
     loo = {name: float(np.sqrt(np.mean((resid - s * corr) ** 2)))
            for name, s in (("lambertian", 0.0), ("full", 1.0), ("shrunk", factor))}
+    loo.update(pooled_factor=pooled, mse_diff_mean=float(np.mean(diff)), mse_diff_se=se,
+               folds_lambertian=np.sqrt(fold_mse(0.0)).tolist(),
+               folds_full=np.sqrt(fold_mse(1.0)).tolist())
     return factor, loo
 
 
