@@ -27,6 +27,15 @@ $$ I = \\rho \\max(0, \\cos\\theta_i) + a\\, w(u)\\, B \\tanh g(\\tilde u, x, y)
 `lambertian_base=False` gives the paper's plain design ($I = \\bar\\rho\\, g$ or
 $I = \\rho\\, g$, unclamped inputs) for comparison.
 
+How much correction five lights justify: `fit_brdf(..., shrink="loo")` scales $B$ by a factor
+$s \\in [0, 1]$ chosen by leave-one-light-out cross-validation on the training frames (normals
+re-estimated without the left-out frame; one-standard-error rule), so the model falls back to
+Lambert's law ($s = 0$) when the correction does not predict unseen training lights.
+
+Relighting (`relight`) evaluates the same formula feature-major: every image-sized quantity is
+a `(K, H W)` array and the MLP's small matrix products are unrolled into multiply-adds over
+whole arrays, so XLA emits a few fused elementwise loops (docs/brdf.md, "Speed").
+
 Training: optimistix `LevenbergMarquardt` over the flattened parameter vector
 (`jax.flatten_util.ravel_pytree`). The residual carries a `jax.custom_jvp` whose tangent is
 $J\\,\\delta p$ with $J$ (N x P) built once per step from per-sample gradients
