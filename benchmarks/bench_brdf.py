@@ -100,6 +100,17 @@ def gain_rmse(pred, obs, mask, near=None):
     return float(np.sqrt(np.mean(errs**2))) if errs.size else float("nan")
 
 
+def loo_gray(loo):
+    """`BRDFFit.loo_rmse` in gray levels (RMSEs x 255, MSE differences x 255^2)."""
+    if loo is None:
+        return None
+    out = {}
+    for k, v in loo.items():
+        scale = 1.0 if k == "pooled_factor" else 255.0**2 if k.startswith("mse") else 255.0
+        out[k] = [x * scale for x in v] if isinstance(v, list) else v * scale
+    return out
+
+
 def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), methods=None):
     methods = METHODS if methods is None else {n: METHODS[n] for n in methods}
     results = []
@@ -145,8 +156,7 @@ def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), methods=Non
                     "n_samples": f.n_samples, "train_images_rmse": rmse(
                         train_pred, images[train], np.broadcast_to(mask, train_pred.shape)),
                     "fit_s": fit_s, "relight_s": relight_s,
-                    "shrink": f.shrink, "loo_rmse_gray": None if f.loo_rmse is None else {
-                        k: v * 255 for k, v in f.loo_rmse.items()},
+                    "shrink": f.shrink, "loo_gray": loo_gray(f.loo_rmse),
                 }
                 m = row["methods"][name]
                 print(f"{subject} {set_name} {name:18s} rmse60 {m['rmse_60']:6.2f} "
