@@ -286,8 +286,7 @@ def test_loo_shrink_keeps_real_reflectance_and_drops_frame_gains(scene):
     gains = np.array([1.0, 1.15, 0.9, 0.85, 1.1], np.float32)[:, None, None]
     lam_train = np.asarray(jaxps.render_lambertian(s["normals"], s["albedo"], s["train"]))
     lam_test = np.asarray(jaxps.render_lambertian(s["normals"], s["albedo"], s["test"]))
-    kw = dict(mask=s["mask"], method="mlp_ratio", key=jax.random.key(0), n_samples=10**6,
-              max_steps=6, shrink="loo")
+    kw = dict(mask=s["mask"], method="mlp_ratio", key=jax.random.key(0), shrink="loo", **FAST)
     results = {}
     for name, images, truth in (("brdf", s["images"], s["truth"]),
                                 ("gains", lam_train * gains, lam_test)):
@@ -304,7 +303,7 @@ def test_loo_shrink_keeps_real_reflectance_and_drops_frame_gains(scene):
                          rmse(jaxps.relight(lam, ps.normals, ps.albedo, s["test"]), truth,
                               s["mask"]))
     shrink, err, err_lambert = results["brdf"]
-    assert shrink > 0.5 and err < 0.97 * err_lambert, results  # measured 0.0080 vs 0.0084
+    assert shrink > 0.5 and err < 0.8 * err_lambert, results
     shrink, err, err_lambert = results["gains"]
     assert shrink < 0.2 and err <= err_lambert * 1.01, results
     with pytest.raises(ValueError, match="shrink"):

@@ -583,7 +583,9 @@ def relight(
         ratio = np.zeros((lights.shape[0], *hw))
         ratio[:, sel] = model.interpolator(f[..., :3].reshape(-1, 3)).reshape(f.shape[:2])
         return jnp.asarray(ratio, normals.dtype) * albedo[None]
-    out = _relight_jit(model, normals, albedo, lights)
+    # the fit report is a static field of the model: drop it so that models that differ only in
+    # their report (every new fit) share one compiled relight
+    out = _relight_jit(dataclasses.replace(model, fit=None), normals, albedo, lights)
     if mask is not None:
         out = jnp.where(jnp.asarray(mask, bool)[None], out, jnp.zeros((), out.dtype))
     return out
