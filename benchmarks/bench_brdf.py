@@ -1,15 +1,17 @@
 """BRDF from five lights: held-out relighting error on Yale B faces, LM training and relight speed.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_brdf.py \
-        [--part accuracy|speed|loop|all]
+        [--part accuracy|speed|loop|gains|all] [--subjects ...] [--sets ...] [--methods ...]
 
 Writes benchmarks/results/brdf.json and brdf.png (`--part loop`: brdf_loop.json, BRDF-in-the-loop
 photometric stereo against a many-light reference; `--part gains`: brdf_gains.json, training on
-frames corrected by estimated per-frame light intensities). Accuracy: for each subject and training set,
-fit normals and albedo by L2 photometric stereo on the five training frames (ambient frame
-subtracted), fit every BRDF method on the same frames, and relight every other light within 60
-(and 30) degrees of the view axis; RMSE in gray levels (0-255) over the face mask. Speed: LM
-training on 100,000 samples and relighting a 700x850 image (compile and run apart).
+frames corrected by estimated per-frame light intensities). Accuracy: for each subject and
+training set, fit normals and albedo by L2 photometric stereo on the five training frames
+(ambient frame subtracted), fit every BRDF method on the same frames, and relight every other
+light within 60 (and 30) degrees of the view axis; RMSE in gray levels (0-255) over the face
+mask, raw and gain-compensated (one least-squares gain per held-out image, every method alike).
+Speed: LM training on 100,000 samples and relighting a 700x850 image (compile and run apart),
+with the previous per-sample relight kernel and the pieces of the new one timed in the same run.
 """
 
 from __future__ import annotations
@@ -204,9 +206,10 @@ def speed(n_samples=100_000, h=700, w=850, steps=30):
 
 
 def relight_speed(models, normals, albedo, rounds=15):
-    """Relight one image (700x850 in `speed`) under one new light with each model, and the pieces of the MLP
-    relight apart, all in one process: rounds interleave the methods so that the load of a
-    shared machine hits them alike; median and min over rounds, compile (first call) apart."""
+    """Relight one image (700x850 in `speed`) under one new light with each model, and the
+    pieces of the MLP relight apart, all in one process: rounds interleave the methods so that
+    the load of a shared machine hits them alike; median and min over rounds, compile (first
+    call) apart."""
     import jax.numpy as jnp
     from jax.scipy.ndimage import map_coordinates
 
@@ -318,7 +321,8 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
     (`jaxps.intensity_estimate`: none, mean, frontal, semi_calibrated), divide the training
     frames by them, run L2 photometric stereo, and report the normals' angular error against
     L2 PS over every light within 50 deg (diagnostic only: nothing is selected with it) and the
-    held-out RMSE of `lambertian` and `mlp_ratio` fitted on the corrected frames."""
+    held-out RMSE of `lambertian`, `mlp_ratio` and (but for semi_calibrated) `mlp_ratio_loo`
+    fitted on the corrected frames (the folds re-run L2 PS on the corrected frames)."""
     out = []
     for subject in subjects:
         images, angles = load_yale(subject)
@@ -343,7 +347,9 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
             st = jaxps.evaluate.angular_stats(ps.normals, ref.normals, mask=mask)
             r = {"intensities": e.tolist(), "normals_median_deg": st["median_deg"],
                  "normals_mean_deg": st["mean_deg"], "methods": {}}
-            for name in ("lambertian", "mlp_ratio"):
+            names = ["lambertian", "mlp_ratio"] + (["mlp_ratio_loo"] if how != "semi_calibrated"
+                                                     else [])
+            for name in names:
                 model = jaxps.fit_brdf(frames, ps.normals, ps.albedo, lights[train], mask=mask,
                                        key=jax.random.key(0), **METHODS[name])
                 pred = np.asarray(jaxps.relight(model, ps.normals, ps.albedo, lights[test60],
@@ -351,7 +357,8 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
                 r["methods"][name] = {
                     "rmse_60": rmse(pred, obs, sel60), "rmse_30": rmse(pred, obs, sel30),
                     "rmse_60_gain_oracle": gain_rmse(pred, obs, mask),
-                    "rmse_30_gain_oracle": gain_rmse(pred, obs, mask, near)}
+                    "rmse_30_gain_oracle": gain_rmse(pred, obs, mask, near),
+                    "shrink": model.fit.shrink, "loo_gray": loo_gray(model.fit.loo_rmse)}
                 m = r["methods"][name]
                 print(f"{subject} {how:15s} e {np.round(e, 3)} normals median "
                       f"{st['median_deg']:5.2f} {name:10s} rmse60/30 {m['rmse_60']:6.2f} "
