@@ -1,14 +1,17 @@
 """BRDF from five lights: held-out relighting error on Yale B faces, LM training and relight speed.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_brdf.py \
-        [--part accuracy|speed|loop|all]
+        [--part accuracy|speed|loop|gains|all] [--subjects ...] [--sets ...] [--methods ...]
 
 Writes benchmarks/results/brdf.json and brdf.png (`--part loop`: brdf_loop.json, BRDF-in-the-loop
-photometric stereo against a many-light reference). Accuracy: for each subject and training set,
-fit normals and albedo by L2 photometric stereo on the five training frames (ambient frame
-subtracted), fit every BRDF method on the same frames, and relight every other light within 60
-(and 30) degrees of the view axis; RMSE in gray levels (0-255) over the face mask. Speed: LM
-training on 100,000 samples and relighting a 700x850 image (compile and run apart).
+photometric stereo against a many-light reference; `--part gains`: brdf_gains.json, training on
+frames corrected by estimated per-frame light intensities). Accuracy: for each subject and
+training set, fit normals and albedo by L2 photometric stereo on the five training frames
+(ambient frame subtracted), fit every BRDF method on the same frames, and relight every other
+light within 60 (and 30) degrees of the view axis; RMSE in gray levels (0-255) over the face
+mask, raw and gain-compensated (one least-squares gain per held-out image, every method alike).
+Speed: LM training on 100,000 samples and relighting a 700x850 image (compile and run apart),
+with the previous per-sample relight kernel and the pieces of the new one timed in the same run.
 """
 
 from __future__ import annotations
@@ -44,6 +47,9 @@ METHODS = {  # name -> fit_brdf keywords
     "mlp": dict(method="mlp"),
     "mlp_ratio": dict(method="mlp_ratio"),
     "mlp_plain (paper)": dict(method="mlp", lambertian_base=False),
+    # the correction scaled by a leave-one-light-out factor (training frames only)
+    "mlp_loo": dict(method="mlp", shrink="loo"),
+    "mlp_ratio_loo": dict(method="mlp_ratio", shrink="loo"),
 }
 
 
@@ -83,17 +89,32 @@ def rmse(pred, obs, sel):
     return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
 
 
-def gain_rmse(pred, obs, mask):
-    """RMSE after each test image gets its best scalar gain (an oracle for flash brightness)."""
+def gain_rmse(pred, obs, mask, near=None):
+    """RMSE after each test image gets its own least-squares scalar gain over the mask, the same
+    for every method ("gain-compensated": the flash brightness of a held-out frame is unknown
+    to any model). `near`: `(K,)` bool, the images to pool (default all)."""
     errs = []
     for p, o in zip(np.asarray(pred), obs):
         pm, om = p[mask], o[mask]
         g = float(pm @ om / max(pm @ pm, 1e-12))
         errs.append((g * pm - om) * 255.0)
-    return float(np.sqrt(np.mean(np.concatenate(errs) ** 2)))
+    errs = np.stack(errs) if near is None else np.stack(errs)[np.asarray(near)]
+    return float(np.sqrt(np.mean(errs**2))) if errs.size else float("nan")
 
 
-def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt")):
+def loo_gray(loo):
+    """`BRDFFit.loo_rmse` in gray levels (RMSEs x 255, MSE differences x 255^2)."""
+    if loo is None:
+        return None
+    out = {}
+    for k, v in loo.items():
+        scale = 1.0 if k == "pooled_factor" else 255.0**2 if k.startswith("mse") else 255.0
+        out[k] = [x * scale for x in v] if isinstance(v, list) else v * scale
+    return out
+
+
+def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), methods=None):
+    methods = METHODS if methods is None else {n: METHODS[n] for n in methods}
     results = []
     for subject in subjects:
         images, angles = load_yale(subject)
@@ -111,7 +132,7 @@ def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt")):
                    "train_lights_deg": TRAIN_SETS[set_name],
                    "test_lights_60": len(test60), "test_lights_30": int(near.sum()),
                    "mask_pixels": int(mask.sum()), "methods": {}}
-            for name, kw in METHODS.items():
+            for name, kw in methods.items():
                 t = time.perf_counter()
                 model = jaxps.fit_brdf(images[train], normals, albedo, lights[train], mask=mask,
                                        key=jax.random.key(0), **kw)
@@ -127,6 +148,7 @@ def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt")):
                 row["methods"][name] = {
                     "rmse_60": rmse(pred, obs, sel60), "rmse_30": rmse(pred, obs, sel30),
                     "rmse_60_gain_oracle": gain_rmse(pred, obs, mask),
+                    "rmse_30_gain_oracle": gain_rmse(pred, obs, mask, near),
                     "rmse_60_extrapolated": rmse(pred, obs, sel60 & flag),
                     "rmse_60_inside": rmse(pred, obs, sel60 & ~flag),
                     "extrapolated_fraction_60": float(flag[sel60].mean()),
@@ -136,10 +158,12 @@ def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt")):
                     "n_samples": f.n_samples, "train_images_rmse": rmse(
                         train_pred, images[train], np.broadcast_to(mask, train_pred.shape)),
                     "fit_s": fit_s, "relight_s": relight_s,
+                    "shrink": f.shrink, "loo_gray": loo_gray(f.loo_rmse),
                 }
                 m = row["methods"][name]
                 print(f"{subject} {set_name} {name:18s} rmse60 {m['rmse_60']:6.2f} "
                       f"rmse30 {m['rmse_30']:6.2f} gain60 {m['rmse_60_gain_oracle']:6.2f} "
+                      f"gain30 {m['rmse_30_gain_oracle']:6.2f} shrink {f.shrink:.3f} "
                       f"extrap {m['extrapolated_fraction_60']:.3f} "
                       f"train mse {m['train_mse_gray2']:7.1f} R {f.r:.4f} steps {f.steps} "
                       f"fit {fit_s:5.1f}s", flush=True)
@@ -157,6 +181,7 @@ def speed(n_samples=100_000, h=700, w=850, steps=30):
                    "is 30); fit times include feature extraction and sampling"}
     # zero tolerances: LM never stops early, so the time is for exactly max_steps=30 steps
     solver = optx.LevenbergMarquardt(rtol=0.0, atol=0.0, linear_solver=lx.Normal(lx.Cholesky()))
+    models = {}
     for method in ("mlp", "mlp_ratio"):
         kw = dict(mask=scene.mask, method=method, n_samples=n_samples, solver=solver,
                   max_steps=steps)
@@ -171,35 +196,176 @@ def speed(n_samples=100_000, h=700, w=850, steps=30):
         out[f"train_{method}_first_s"] = first
         out[f"train_{method}_s"] = second
         out[f"train_{method}_steps"] = model.fit.steps
+        models[method] = model
         print(f"train {method}: first call (compile) {first:.2f} s, second {second:.2f} s, "
               f"{model.fit.steps} steps", flush=True)
-    light = jaxps.lights_from_angles([30.0], [10.0])
-    for method in ("mlp_ratio", "lambertian"):
-        m = model if method == "mlp_ratio" else jaxps.fit_brdf(
-            scene.images, scene.normals, scene.albedo, lights, mask=scene.mask, method=method)
+    models["lambertian"] = jaxps.fit_brdf(scene.images, scene.normals, scene.albedo, lights,
+                                          mask=scene.mask, method="lambertian")
+    out.update(relight_speed(models, scene.normals, scene.albedo))
+    return out
+
+
+def relight_speed(models, normals, albedo, rounds=15):
+    """Relight one image (700x850 in `speed`) under one new light with each model, and the
+    pieces of the MLP relight apart, all in one process: rounds interleave the methods so that
+    the load of a shared machine hits them alike; median and min over rounds, compile (first
+    call) apart."""
+    import jax.numpy as jnp
+    from jax.scipy.ndimage import map_coordinates
+
+    from jaxps._brdf import _mlp, _mlp_elementwise, _predict_one, _support_weight
+    from jaxps._brdf_features import (
+        _angles_elementwise,
+        _atan2_nonneg,
+        _sample_angles,
+        pixel_coordinates,
+    )
+
+    normals, albedo = jnp.asarray(normals), jnp.asarray(albedo)
+    h, w, _ = normals.shape
+    light = jnp.asarray(jaxps.lights_from_angles([30.0], [10.0]), normals.dtype)
+    m = models["mlp_ratio"]
+    params = m.params
+
+    @jax.jit
+    def features_per_sample(n, lights):  # the previous layout: vmap of a 3-vector kernel
+        n = n / jnp.linalg.norm(n, axis=-1, keepdims=True)
+        view = jnp.array([0, 0, 1], n.dtype)
+        one = jax.vmap(jax.vmap(_sample_angles, (0, None, None)), (None, 0, None))
+        return one(n.reshape(-1, 3), lights, view)
+
+    @jax.jit
+    def relight_per_sample(n, rho, lights):  # the previous relight: vmap of _predict_one
+        ang = features_per_sample(n, lights).reshape(-1, 3)
+        xy = jnp.broadcast_to(pixel_coordinates(h, w).reshape(1, -1, 2),
+                              (lights.shape[0], h * w, 2)).reshape(-1, 2)
+        f = jnp.concatenate([ang, xy], -1)
+        r = jnp.broadcast_to(rho.reshape(1, -1), (lights.shape[0], h * w)).reshape(-1)
+        return jax.vmap(lambda fs, a: _predict_one(params, fs, a, m.box_lo, m.box_hi, m.support,
+                                                   m.rho_ref, m.bound, m.cell, True, True,
+                                                   True))(f, r)
+
+    ti, tr, da, _ = jax.jit(_angles_elementwise)(normals, light)
+    tr = jnp.broadcast_to(tr, ti.shape)
+    rows = [ti, tr, da, ti * 0.5, tr * 0.5]
+    z = jnp.concatenate(rows)  # (5, P) feature-major
+    zt = z.T  # (P, 5) sample-major
+
+    def gemm(p, z):
+        for wt, b in p[:-1]:
+            z = jnp.tanh(wt @ z + b[:, None])
+        return (p[-1][0] @ z + p[-1][1][:, None])[0]
+
+    cases = {
+        "relight_mlp": lambda: jaxps.relight(models["mlp"], normals, albedo, light),
+        "relight_mlp_ratio": lambda: jaxps.relight(m, normals, albedo, light),
+        "relight_lambertian": lambda: jaxps.relight(models["lambertian"], normals, albedo, light),
+        "render_lambertian": lambda: jaxps.render_lambertian(normals, albedo, light),
+        "relight_mlp_ratio_per_sample (previous kernel)": partial_jit(
+            relight_per_sample, normals, albedo, light),
+        "piece_features_elementwise (theta_i, theta_r, delta_alpha)": partial_jit(
+            _angles_elementwise, normals, light),
+        "piece_features_per_sample_vmap (previous, XLA atan2)": partial_jit(
+            features_per_sample, normals, light),
+        "piece_atan2_xla": partial_jit(jnp.arctan2, jnp.abs(ti), tr - 0.5),
+        "piece_atan2_polynomial": partial_jit(_atan2_nonneg, jnp.abs(ti), tr - 0.5),
+        "piece_tanh_xla": partial_jit(jnp.tanh, ti),
+        "piece_mlp_elementwise": partial_jit(_mlp_elementwise, params, rows),
+        "piece_mlp_gemm_feature_major": partial_jit(gemm, params, z),
+        "piece_mlp_vmap_per_sample (previous)": partial_jit(
+            jax.vmap(_mlp, (None, 0)), params, zt),
+        "piece_support_gather": partial_jit(
+            lambda s, a, b, c: _support_weight(s, (a, b, c), m.cell), m.support, ti, tr, da),
+        "piece_support_map_coordinates_vmap (previous)": partial_jit(
+            jax.vmap(lambda s, a: map_coordinates(s, list(a / m.cell - 0.5), order=1,
+                                                  mode="nearest"), (None, 0)),
+            m.support, jnp.stack([ti, tr, da], -1).reshape(-1, 3)),
+    }
+    compile_s, runs = {}, {name: [] for name in cases}
+    for name, fn in cases.items():
         t = time.perf_counter()
-        jaxps.relight(m, scene.normals, scene.albedo, light).block_until_ready()
-        compile_s = time.perf_counter() - t
-        runs = []
-        for _ in range(10):
+        jax.block_until_ready(fn())
+        compile_s[name] = time.perf_counter() - t
+    for _ in range(rounds):
+        for name, fn in cases.items():
             t = time.perf_counter()
-            jaxps.relight(m, scene.normals, scene.albedo, light).block_until_ready()
-            runs.append(time.perf_counter() - t)
-        out[f"relight_{method}_compile_s"] = compile_s
-        out[f"relight_{method}_ms_median"] = 1e3 * float(np.median(runs))
-        out[f"relight_{method}_ms_min"] = 1e3 * float(np.min(runs))
-        print(f"relight {method} {h}x{w}: compile {compile_s:.2f} s, "
-              f"median {1e3 * np.median(runs):.1f} ms, min {1e3 * np.min(runs):.1f} ms", flush=True)
-    # the Lambertian baseline rendered by the core library, same image
-    normals, albedo = scene.normals, scene.albedo
-    jaxps.render_lambertian(normals, albedo, light).block_until_ready()
-    runs = []
-    for _ in range(10):
-        t = time.perf_counter()
-        jaxps.render_lambertian(normals, albedo, light).block_until_ready()
-        runs.append(time.perf_counter() - t)
-    out["render_lambertian_ms_median"] = 1e3 * float(np.median(runs))
-    print(f"render_lambertian: median {1e3 * np.median(runs):.1f} ms", flush=True)
+            jax.block_until_ready(fn())
+            runs[name].append(time.perf_counter() - t)
+    out = {"relight_image": [h, w], "relight_rounds": rounds, "relight": {}}
+    for name in cases:
+        r = np.asarray(runs[name]) * 1e3
+        out["relight"][name] = {"first_call_s": compile_s[name], "ms_median": float(np.median(r)),
+                                "ms_min": float(r.min())}
+        print(f"{name:58s} first {compile_s[name]:6.2f} s  median {np.median(r):7.2f} ms  "
+              f"min {r.min():7.2f} ms", flush=True)
+    med = {n: v["ms_median"] for n, v in out["relight"].items()}
+    for name in ("relight_mlp", "relight_mlp_ratio"):
+        out[f"{name}_ms_median"] = med[name]
+        out[f"{name}_over_lambertian"] = med[name] / med["relight_lambertian"]
+    out["relight_lambertian_ms_median"] = med["relight_lambertian"]
+    out["render_lambertian_ms_median"] = med["render_lambertian"]
+    out["relight_previous_kernel_over_new"] = (
+        med["relight_mlp_ratio_per_sample (previous kernel)"] / med["relight_mlp_ratio"])
+    return out
+
+
+def partial_jit(fn, *args):
+    """A zero-argument callable running `jax.jit(fn)(*args)` (compiled once)."""
+    jitted = jax.jit(fn)
+    return lambda: jitted(*args)
+
+
+def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
+    """Per-frame light intensities of the five training frames (idea: train every method on
+    gain-corrected frames and the normals they give). For each way of estimating them
+    (`jaxps.intensity_estimate`: none, mean, frontal, semi_calibrated), divide the training
+    frames by them, run L2 photometric stereo, and report the normals' angular error against
+    L2 PS over every light within 50 deg (diagnostic only: nothing is selected with it) and the
+    held-out RMSE of `lambertian`, `mlp_ratio` and (but for semi_calibrated) `mlp_ratio_loo`
+    fitted on the corrected frames (the folds re-run L2 PS on the corrected frames)."""
+    out = []
+    for subject in subjects:
+        images, angles = load_yale(subject)
+        lights = jaxps.lights_from_angles(*np.array(angles, float).T)
+        zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
+        ref_idx = [i for i in range(len(angles)) if zenith[i] <= 50]
+        ref = jaxps.photometric_stereo(images[ref_idx], lights[ref_idx])
+        train = [angles.index(a) for a in TRAIN_SETS[set_name]]
+        test60 = [i for i in range(len(angles)) if i not in train and zenith[i] <= 60]
+        near = np.array([zenith[i] <= 30 for i in test60])
+        mask = face_mask(images[train], jaxps.photometric_stereo(images[train], lights[train]))
+        obs = images[test60]
+        sel60 = np.broadcast_to(mask, obs.shape)
+        sel30 = sel60 & near[:, None, None]
+        row = {"subject": subject, "train_set": set_name, "reference_lights": len(ref_idx),
+               "estimates": {}}
+        for how in ("none", "mean", "frontal", "semi_calibrated"):
+            e = np.asarray(jaxps.intensity_estimate(images[train], lights[train], mask=mask,
+                                                    method=how), np.float64)
+            frames = images[train] / e[:, None, None].astype(np.float32)
+            ps = jaxps.photometric_stereo(frames, lights[train])
+            st = jaxps.evaluate.angular_stats(ps.normals, ref.normals, mask=mask)
+            r = {"intensities": e.tolist(), "normals_median_deg": st["median_deg"],
+                 "normals_mean_deg": st["mean_deg"], "methods": {}}
+            names = ["lambertian", "mlp_ratio"] + (["mlp_ratio_loo"] if how != "semi_calibrated"
+                                                     else [])
+            for name in names:
+                model = jaxps.fit_brdf(frames, ps.normals, ps.albedo, lights[train], mask=mask,
+                                       key=jax.random.key(0), **METHODS[name])
+                pred = np.asarray(jaxps.relight(model, ps.normals, ps.albedo, lights[test60],
+                                                mask=mask))
+                r["methods"][name] = {
+                    "rmse_60": rmse(pred, obs, sel60), "rmse_30": rmse(pred, obs, sel30),
+                    "rmse_60_gain_oracle": gain_rmse(pred, obs, mask),
+                    "rmse_30_gain_oracle": gain_rmse(pred, obs, mask, near),
+                    "shrink": model.fit.shrink, "loo_gray": loo_gray(model.fit.loo_rmse)}
+                m = r["methods"][name]
+                print(f"{subject} {how:15s} e {np.round(e, 3)} normals median "
+                      f"{st['median_deg']:5.2f} {name:10s} rmse60/30 {m['rmse_60']:6.2f} "
+                      f"{m['rmse_30']:6.2f} gain {m['rmse_60_gain_oracle']:6.2f} "
+                      f"{m['rmse_30_gain_oracle']:6.2f}", flush=True)
+            row["estimates"][how] = r
+        out.append(row)
     return out
 
 
@@ -266,16 +432,20 @@ def chart(acc, path):
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--part", choices=("accuracy", "speed", "loop", "all"), default="all")
+    parser.add_argument("--part", choices=("accuracy", "speed", "loop", "gains", "all"),
+                        default="all")
     parser.add_argument("--subjects", nargs="+", default=["yaleB01", "yaleB02"])
     parser.add_argument("--sets", nargs="+", default=["cross", "alt"])
+    parser.add_argument("--methods", nargs="+", default=None, choices=list(METHODS),
+                        help="accuracy: refit only these methods (other methods of a stored row "
+                        "are kept)")
     parser.add_argument("--quick", action="store_true",
                         help="speed only, 20,000 samples, 5 LM steps, 350x425 (kept apart under "
                         "'speed_quick'; the stored accuracy figures are left as they are)")
     args = parser.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
-    # the BRDF-in-the-loop part writes its own file (it can run beside the others)
-    path = OUT / ("brdf_loop.json" if args.part == "loop" else "brdf.json")
+    # the BRDF-in-the-loop and gains parts write their own files (they can run beside the others)
+    path = OUT / {"loop": "brdf_loop.json", "gains": "brdf_gains.json"}.get(args.part, "brdf.json")
     res = json.loads(path.read_text()) if path.exists() else {}
     res["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(),
                       "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
@@ -284,7 +454,12 @@ def main():
         res["speed_quick"] = speed(n_samples=20_000, h=350, w=425, steps=5)
         args.part = "none"
     if args.part in ("accuracy", "all"):
-        new = accuracy(tuple(args.subjects), tuple(args.sets))
+        new = accuracy(tuple(args.subjects), tuple(args.sets), args.methods)
+        old = {(r["subject"], r["train_set"]): r for r in res.get("accuracy", [])}
+        for r in new:  # keep the stored methods that were not refitted
+            prev = old.get((r["subject"], r["train_set"]))
+            if args.methods and prev is not None:
+                r["methods"] = {**prev["methods"], **r["methods"]}
         done = {(r["subject"], r["train_set"]) for r in new}
         kept = [r for r in res.get("accuracy", []) if (r["subject"], r["train_set"]) not in done]
         res["accuracy"] = sorted(kept + new, key=lambda r: (r["train_set"] != "cross",
@@ -292,9 +467,11 @@ def main():
         chart(res["accuracy"], OUT / "brdf.png")
     if args.part in ("speed", "all"):
         res["speed"] = speed()
+    if args.part == "gains":
+        res["gains"] = gains(tuple(args.subjects))
     if args.part == "loop":
         res["loop"] = loop()
-    else:
+    elif args.part != "gains":
         res["points"] = points(res)
     path.write_text(json.dumps(res, indent=1))
     print(f"wrote {path}")

@@ -27,6 +27,15 @@ $$ I = \\rho \\max(0, \\cos\\theta_i) + a\\, w(u)\\, B \\tanh g(\\tilde u, x, y)
 `lambertian_base=False` gives the paper's plain design ($I = \\bar\\rho\\, g$ or
 $I = \\rho\\, g$, unclamped inputs) for comparison.
 
+How much correction five lights justify: `fit_brdf(..., shrink="loo")` scales $B$ by a factor
+$s \\in [0, 1]$ chosen by leave-one-light-out cross-validation on the training frames (normals
+re-estimated without the left-out frame; one-standard-error rule), so the model falls back to
+Lambert's law ($s = 0$) when the correction does not predict unseen training lights.
+
+Relighting (`relight`) evaluates the same formula feature-major: every image-sized quantity is
+a `(K, H W)` array and the MLP's small matrix products are unrolled into multiply-adds over
+whole arrays, so XLA emits a few fused elementwise loops (docs/brdf.md, "Speed").
+
 Training: optimistix `LevenbergMarquardt` over the flattened parameter vector
 (`jax.flatten_util.ravel_pytree`). The residual carries a `jax.custom_jvp` whose tangent is
 $J\\,\\delta p$ with $J$ (N x P) built once per step from per-sample gradients
@@ -54,7 +63,6 @@ from typing import NamedTuple
 
 import equinox as eqx
 import jax
-import jax.scipy.ndimage
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
@@ -65,7 +73,12 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
-from ._brdf_features import _features, brdf_features
+from ._brdf_features import (
+    _angles_elementwise,
+    _features,
+    brdf_features,
+    pixel_coordinates,
+)
 
 __all__ = [
     "BRDF_METHODS",
@@ -89,6 +102,13 @@ class BRDFFit(NamedTuple):
     - `n_samples`: training samples used.
     - `seconds`: wall time of the fit (compile included).
     - `message`: the solver's result message.
+    - `shrink`: the factor $s$ the correction was scaled by (`fit_brdf(..., shrink="loo")`;
+      1.0 without shrinkage). `mse`, `rmse`, `r` are those of the shrunk model.
+    - `loo_rmse`: with `shrink="loo"`, the leave-one-light-out report: RMSE over the K left-out
+      frames pooled, `"lambertian"`, `"full"`, `"shrunk"` (correction scaled by 0, 1 and $s$);
+      `"pooled_factor"` ($s^*$ before the one-SE rule), `"mse_diff_mean"`, `"mse_diff_se"`
+      (per-fold MSE change at $s^*$ against Lambert, and its standard error) and the per-fold
+      RMSEs `"folds_lambertian"`, `"folds_full"`; else None.
     """
 
     steps: int
@@ -99,6 +119,8 @@ class BRDFFit(NamedTuple):
     n_samples: int
     seconds: float
     message: str
+    shrink: float = 1.0
+    loo_rmse: dict | None = None
 
 
 class BRDFModel(eqx.Module):
@@ -154,16 +176,36 @@ def _predict_one(params, f, rho, box_lo, box_hi, support, rho_ref, bound, cell, 
         return amp * _mlp(params, z)
     clamped = jnp.clip(u, box_lo, box_hi)
     z = jnp.concatenate([2 * (clamped - box_lo) / span - 1, xy])
-    weight = _support_weight(support, f[:3], cell)
+    weight = _support_weight(support, (f[0], f[1], f[2]), cell)
     lambert = rho * jnp.maximum(jnp.cos(f[0]), 0)
     return lambert + amp * weight * bound * jnp.tanh(_mlp(params, z))
 
 
 def _support_weight(support, angles, cell):
     """Trilinear interpolation of the 0/1 occupancy grid at (θi, θr, Δα): 1 amid training data,
-    0 one cell away from it."""
-    coords = [angles[i] / cell - 0.5 for i in range(3)]
-    return jax.scipy.ndimage.map_coordinates(support, coords, order=1, mode="nearest")
+    0 one cell away from it. `angles` is a sequence of three arrays of one shape (or scalars).
+
+    Cell centres sit at (j + 1/2) `cell`; indices are clamped to the grid (the semantics of
+    `jax.scipy.ndimage.map_coordinates(support, angles / cell - 1/2, order=1, mode="nearest")`,
+    written as eight gathers from the flat grid so it stays one fused elementwise kernel).
+    """
+    shape = support.shape
+    flat = support.reshape(-1)
+    nodes = []
+    for a, size in zip(angles, shape):
+        c = a / cell - 0.5
+        lower = jnp.floor(c)
+        upper_weight = c - lower
+        i = lower.astype(jnp.int32)
+        nodes.append(((jnp.clip(i, 0, size - 1), 1 - upper_weight),
+                      (jnp.clip(i + 1, 0, size - 1), upper_weight)))
+    out = None
+    for i0, w0 in nodes[0]:
+        for i1, w1 in nodes[1]:
+            for i2, w2 in nodes[2]:
+                term = (w0 * w1 * w2) * flat[(i0 * shape[1] + i1) * shape[2] + i2]
+                out = term if out is None else out + term
+    return out
 
 
 def _support_grid(angles, cell, min_count):
@@ -308,6 +350,8 @@ def fit_brdf(
     solver: optx.AbstractLeastSquaresSolver | None = None,
     max_steps: int = 30,
     saturation: float = 1.0,
+    shrink: str | None = None,
+    ps_method: str = "l2",
 ) -> BRDFModel:
     """Fit a BRDF to K images of one object with known normals, albedo and lights.
 
@@ -334,6 +378,18 @@ def fit_brdf(
       `LevenbergMarquardt(rtol=1e-4, atol=1e-6, linear_solver=lineax.Normal(lineax.Cholesky()))`).
     - `max_steps`: the solver's step limit; one LM step uses every sample once (an epoch; the
       paper trained ~200). 30 keeps 100,000 samples under ~30 s on 2 CPU cores.
+    - `shrink`: `"loo"` scales the fitted correction by a factor $s \\in [0, 1]$ chosen by
+      leave-one-light-out cross-validation on the training frames only: for each frame $j$,
+      normals and albedo are re-estimated from the other K-1 frames
+      (`photometric_stereo(method=ps_method)`, K >= 4), the same model is fitted on those K-1
+      frames, and its correction $c_j$ and Lambert's prediction $L_j$ of the left-out frame are
+      compared with the frame $I_j$; $s^*$ minimises the pooled squared error
+      $\\sum_j \\lVert I_j - L_j - s\\, c_j \\rVert^2$ (closed form, clipped to [0, 1]; 0 when the
+      folds predict no correction), and is kept only if its per-fold gain over Lambert's law
+      exceeds one standard error (else $s = 0$, Lambert's law: the model is no more than the
+      data justify). Costs K + 1 fits. MLP methods with `lambertian_base=True` only.
+    - `ps_method`: the photometric-stereo method for the folds of `shrink="loo"` (use the one
+      that gave `normals` and `albedo`).
 
     **Returns:** a `BRDFModel`; `model.fit` is a `BRDFFit` (steps, converged, mse, rmse, R).
 
@@ -343,7 +399,15 @@ def fit_brdf(
     t0 = time.perf_counter()
     if method not in BRDF_METHODS:
         raise ValueError(f"method must be one of {BRDF_METHODS}, got {method!r}")
+    if shrink not in (None, "loo"):
+        raise ValueError(f"shrink must be None or 'loo', got {shrink!r}")
+    if shrink is not None and (method not in ("mlp", "mlp_ratio") or not lambertian_base):
+        raise ValueError("shrink='loo' scales the correction to Lambert's law: it needs "
+                         "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
+    if shrink is not None and images.shape[0] < 4:
+        raise ValueError(f"shrink='loo' needs K >= 4 frames (K-1 >= 3 for photometric stereo), "
+                         f"got {images.shape[0]}")
     dtype = images.dtype
     key = jax.random.key(0) if key is None else key
     k, h, w = images.shape
@@ -393,13 +457,68 @@ def fit_brdf(
         max_steps=int(max_steps))
     model = BRDFModel(method, params, **common)
     msg = "converged" if bool(ok) else f"stopped at max_steps={max_steps} or failed"
-    return _with_fit(model, res + target, target, int(steps), bool(ok), t0, msg)
+    pred = res + target
+    if shrink is None:
+        return _with_fit(model, pred, target, int(steps), bool(ok), t0, msg)
+    options = dict(method=method, key=key, n_samples=n_samples, hidden=hidden, bound=bound,
+                   support_deg=support_deg, min_count=min_count, lambertian_base=True,
+                   use_xy=use_xy, solver=solver, max_steps=max_steps, saturation=saturation)
+    factor, loo = _loo_shrink(images, lights, mask, ps_method, options)
+    lambert = rho * jnp.maximum(jnp.cos(f[:, 0]), 0)
+    model = dataclasses.replace(model, bound=float(bound) * factor)
+    msg += f"; correction scaled by {factor:.3f} (leave-one-light-out)"
+    return _with_fit(model, lambert + factor * (pred - lambert), target, int(steps), bool(ok), t0,
+                     msg, shrink=factor, loo_rmse=loo)
 
 
-def _with_fit(model, pred, target, steps, converged, t0, message):
+def _loo_shrink(images, lights, mask, ps_method, options):
+    """The shrinkage factor of `fit_brdf(..., shrink="loo")` and its leave-one-light-out report.
+
+    $s^*$ minimises the pooled squared error over the folds (closed form, clipped to [0, 1]).
+    It is kept only if it beats Lambert's law ($s = 0$) by more than one standard error of the
+    per-fold differences of mean squared error (the "one-standard-error rule": the simplest
+    model within one SE of the best; Hastie, Tibshirani & Friedman, *The Elements of Statistical
+    Learning*, 2nd ed., §7.10). With five lights the folds differ a lot; a pooled gain carried
+    by one fold is not evidence that the correction transfers to new lights.
+    """
+    from ._ps import photometric_stereo
+
+    k = images.shape[0]
+    folds = []
+    for j in range(k):
+        keep = np.array([i for i in range(k) if i != j])
+        ps = photometric_stereo(images[keep], lights[keep], mask=mask, method=ps_method)
+        model = fit_brdf(images[keep], ps.normals, ps.albedo, lights[keep], mask=mask, **options)
+        full = np.asarray(relight(model, ps.normals, ps.albedo, lights[j]), np.float64)[0]
+        lam = np.asarray(relight(dataclasses.replace(model, bound=0.0), ps.normals, ps.albedo,
+                                 lights[j]), np.float64)[0]
+        obs = np.asarray(images[j], np.float64)
+        ok = mask & np.isfinite(obs) & (obs < options["saturation"]) & (np.asarray(ps.albedo) > 0)
+        folds.append(((obs - lam)[ok], (full - lam)[ok]))
+    num = sum(float(r @ c) for r, c in folds)
+    den = sum(float(c @ c) for _, c in folds)
+    pooled = float(np.clip(num / den, 0.0, 1.0)) if den > 0 else 0.0
+
+    def fold_mse(s):
+        return np.array([np.mean((r - s * c) ** 2) for r, c in folds])
+
+    diff = fold_mse(pooled) - fold_mse(0.0)  # < 0: the correction helps that fold
+    se = float(np.std(diff, ddof=1) / math.sqrt(k))
+    factor = pooled if float(np.mean(diff)) + se < 0 else 0.0
+    resid = np.concatenate([r for r, _ in folds])
+    corr = np.concatenate([c for _, c in folds])
+    loo = {name: float(np.sqrt(np.mean((resid - s * corr) ** 2)))
+           for name, s in (("lambertian", 0.0), ("full", 1.0), ("shrunk", factor))}
+    loo.update(pooled_factor=pooled, mse_diff_mean=float(np.mean(diff)), mse_diff_se=se,
+               folds_lambertian=np.sqrt(fold_mse(0.0)).tolist(),
+               folds_full=np.sqrt(fold_mse(1.0)).tolist())
+    return factor, loo
+
+
+def _with_fit(model, pred, target, steps, converged, t0, message, **extra):
     mse, rmse, r = _fit_stats(pred, target)
     fit = BRDFFit(steps, converged, mse, rmse, r, int(np.size(target)),
-                  time.perf_counter() - t0, message)
+                  time.perf_counter() - t0, message, **extra)
     return dataclasses.replace(model, fit=fit)
 
 
@@ -464,7 +583,9 @@ def relight(
         ratio = np.zeros((lights.shape[0], *hw))
         ratio[:, sel] = model.interpolator(f[..., :3].reshape(-1, 3)).reshape(f.shape[:2])
         return jnp.asarray(ratio, normals.dtype) * albedo[None]
-    out = _relight_jit(model, normals, albedo, lights)
+    # the fit report is a static field of the model: drop it so that models that differ only in
+    # their report (every new fit) share one compiled relight
+    out = _relight_jit(dataclasses.replace(model, fit=None), normals, albedo, lights)
     if mask is not None:
         out = jnp.where(jnp.asarray(mask, bool)[None], out, jnp.zeros((), out.dtype))
     return out
@@ -472,25 +593,54 @@ def relight(
 
 @eqx.filter_jit
 def _relight_jit(model, normals, albedo, lights):
+    """`(K, H, W)` images, feature-major: every image-sized quantity is a `(K, P)` array
+    (P = H W; per-pixel terms `(1, P)`), so the whole render is elementwise work that XLA fuses
+    and vectorises. The same model as `_predict_one` (tests/test_brdf.py checks it against a
+    numpy reference): the small matrix products of the MLP are unrolled into multiply-adds over
+    whole arrays (a per-sample `w @ z` under `vmap`, or a `(10, 10) @ (10, P)` GEMM, were 3-10x
+    slower on the CPU), and cos θi is n·l."""
     dtype = normals.dtype
+    k = lights.shape[0]
+    h, w, _ = normals.shape
+    theta_i, theta_r, delta, cos_i = _angles_elementwise(normals, lights)
+    rho = albedo.reshape(1, -1)
+    lambert = rho * jnp.maximum(cos_i, 0)
     if model.method == "lambertian":
-        unit = normals / jnp.maximum(jnp.linalg.norm(normals, axis=-1, keepdims=True),
-                                     jnp.asarray(1e-12, dtype))
-        return albedo[None] * jnp.maximum(jnp.einsum("kc,hwc->khw", lights, unit), 0)
-    f = _features(normals, lights)
+        return lambert.reshape(k, h, w)
     params = jax.tree.map(lambda a: a.astype(dtype), model.params)
-    ratio = model.method == "mlp_ratio"
+    box_lo, box_hi = model.box_lo.astype(dtype), model.box_hi.astype(dtype)
+    span = jnp.maximum(box_hi - box_lo, jnp.asarray(1e-6, dtype))
+    u = [theta_i - theta_r, theta_i + theta_r, delta]
+    if model.lambertian_base:
+        u = [jnp.clip(u[j], box_lo[j], box_hi[j]) for j in range(3)]
+    z = [2 * (u[j] - box_lo[j]) / span[j] - 1 for j in range(3)]
+    xy = pixel_coordinates(h, w, dtype).reshape(1, -1, 2)
+    if not model.use_xy:
+        xy = jnp.zeros_like(xy)
+    g = _mlp_elementwise(params, [*z, xy[..., 0], xy[..., 1]])
+    amp = rho if model.method == "mlp_ratio" else model.rho_ref.astype(dtype)
+    if not model.lambertian_base:
+        out = amp * g
+    else:
+        weight = _support_weight(model.support.astype(dtype), (theta_i, theta_r, delta),
+                                 model.cell)
+        out = lambert + amp * weight * model.bound * jnp.tanh(g)
+    return jnp.broadcast_to(out, (k, h * w)).reshape(k, h, w)
 
-    def one(fs, rho):
-        return _predict_one(params, fs, rho, model.box_lo.astype(dtype),
-                            model.box_hi.astype(dtype), model.support.astype(dtype),
-                            model.rho_ref.astype(dtype), model.bound, model.cell,
-                            model.lambertian_base, ratio,
-                            model.use_xy)
 
-    k, h, w, _ = f.shape
-    rho = jnp.broadcast_to(albedo, (k, h, w)).reshape(-1)
-    return jax.vmap(one)(f.reshape(-1, 5), rho).reshape(k, h, w)
+def _mlp_elementwise(params, rows):
+    """`_mlp` on a list of input arrays (one per input unit, broadcasting against each other):
+    every unit is a sum of scalar-times-array terms, so the network is elementwise."""
+    for layer, (w, b) in enumerate(params):
+        n_out, n_in = w.shape
+        out = []
+        for o in range(n_out):
+            acc = b[o] + w[o, 0] * rows[0]
+            for i in range(1, n_in):
+                acc = acc + w[o, i] * rows[i]
+            out.append(acc)
+        rows = out if layer == len(params) - 1 else [jnp.tanh(a) for a in out]
+    return rows[0]
 
 
 def extrapolation_mask(
@@ -515,9 +665,12 @@ def extrapolation_mask(
     if model.method == "delaunay":
         ang = np.asarray(f[..., :3], np.float64)
         return jnp.asarray(model.interpolator.outside(ang.reshape(-1, 3)).reshape(ang.shape[:3]))
-    weight = jax.vmap(_support_weight, in_axes=(None, 0, None))(
-        model.support.astype(f.dtype), f.reshape(-1, 5)[:, :3], model.cell)
-    return (weight < 0.5).reshape(f.shape[:3])
+    return _support_weight_jit(model.support.astype(f.dtype), f, model.cell) < 0.5
+
+
+@eqx.filter_jit
+def _support_weight_jit(support, f, cell):
+    return _support_weight(support, (f[..., 0], f[..., 1], f[..., 2]), cell)
 
 
 _ = brdf_features  # re-exported from jaxps
