@@ -118,6 +118,7 @@ def subject_figures(subject_dir):
         "sigma_pixel_p10_p90": [float(v) for v in np.percentile(sp, [10, 90])],
         "sigma_pixel_status": jaxps.status_counts(np.asarray(fit_pix.status)[ok]),
         "sigma_global_joint_on_ps": sig_joint,
+        "joint_on_ps_status": jaxps.status_counts(np.asarray(on_ref.status)[ok]),
         "heldout_within60": {"rmse_gray": mc.rmse, "bic": mc.bic, "sigma": mc.sigma,
                              "sigma_status": jaxps.Status(mc.sigma_status).name,
                              "choice": mc.choice, "test_samples": mc.test_samples,
