@@ -68,6 +68,16 @@ def load_yale(subject: str):
     return np.stack(images), angles
 
 
+def load_subject(subject: str):
+    """Frames, Yale B angles, unit lights, zenith angles (deg) and the many-light reference
+    (L2 PS over every light within 50 deg of the view axis) of one subject."""
+    images, angles = load_yale(subject)
+    lights = jaxps.lights_from_angles(*np.array(angles, float).T)
+    zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
+    near = zenith <= 50
+    return images, angles, lights, zenith, jaxps.photometric_stereo(images[near], lights[near])
+
+
 def face_mask(train_images, ps):
     """Face mask: lit in every training frame (>= 10 gray), PS status OK, albedo >= 0.3 x its
     median (drops hair, eyebrows' darkest parts and background), eroded 2 px, largest component."""
@@ -325,11 +335,7 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
     fitted on the corrected frames (the folds re-run L2 PS on the corrected frames)."""
     out = []
     for subject in subjects:
-        images, angles = load_yale(subject)
-        lights = jaxps.lights_from_angles(*np.array(angles, float).T)
-        zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
-        ref_idx = [i for i in range(len(angles)) if zenith[i] <= 50]
-        ref = jaxps.photometric_stereo(images[ref_idx], lights[ref_idx])
+        images, angles, lights, zenith, ref = load_subject(subject)
         train = [angles.index(a) for a in TRAIN_SETS[set_name]]
         test60 = [i for i in range(len(angles)) if i not in train and zenith[i] <= 60]
         near = np.array([zenith[i] <= 30 for i in test60])
@@ -337,7 +343,7 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
         obs = images[test60]
         sel60 = np.broadcast_to(mask, obs.shape)
         sel30 = sel60 & near[:, None, None]
-        row = {"subject": subject, "train_set": set_name, "reference_lights": len(ref_idx),
+        row = {"subject": subject, "train_set": set_name, "reference_lights": int(np.sum(zenith <= 50)),
                "estimates": {}}
         for how in ("none", "mean", "frontal", "semi_calibrated"):
             e = np.asarray(jaxps.intensity_estimate(images[train], lights[train], mask=mask,
@@ -374,15 +380,11 @@ def loop(subject="yaleB01", set_name="cross"):
     light within 50 degrees of the view axis (the many-light reference)."""
     from jaxps._brdf_ps import brdf_photometric_stereo
 
-    images, angles = load_yale(subject)
-    lights = jaxps.lights_from_angles(*np.array(angles, float).T)
-    zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
-    ref_idx = [i for i in range(len(angles)) if zenith[i] <= 50]
-    ref = jaxps.photometric_stereo(images[ref_idx], lights[ref_idx])
+    images, angles, lights, zenith, ref = load_subject(subject)
     train = [angles.index(a) for a in TRAIN_SETS[set_name]]
     ps = jaxps.photometric_stereo(images[train], lights[train])
     mask = face_mask(images[train], ps)
-    out = {"subject": subject, "train_set": set_name, "reference_lights": len(ref_idx),
+    out = {"subject": subject, "train_set": set_name, "reference_lights": int(np.sum(zenith <= 50)),
            "l2": jaxps.evaluate.angular_stats(ps.normals, ref.normals, mask=mask)}
     print("l2", out["l2"], flush=True)
     for method in ("lambertian", "mlp_ratio"):
