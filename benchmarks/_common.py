@@ -6,6 +6,7 @@ import json
 import os
 import pathlib
 import platform
+import statistics
 import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -38,6 +39,23 @@ def timed(fn, *args, repeats: int = 3, **kwargs):
         out = block(fn(*args, **kwargs))
         best = min(best, time.perf_counter() - t0)
     return out, first, best
+
+
+def time_calls(fn, repeats: int = 3) -> dict:
+    """Time `fn()`: the first call (compile + run) apart from `repeats` later calls.
+
+    **Returns:** `{"first_call_s", "run_s_min", "run_s_median"}`.
+    """
+    t0 = time.perf_counter()
+    block(fn())
+    first = time.perf_counter() - t0
+    runs = []
+    for _ in range(max(repeats, 1)):
+        t0 = time.perf_counter()
+        block(fn())
+        runs.append(time.perf_counter() - t0)
+    return {"first_call_s": first, "run_s_min": min(runs),
+            "run_s_median": statistics.median(runs)}
 
 
 def environment() -> dict:

@@ -12,7 +12,6 @@ import argparse
 import json
 import os
 import platform
-import time
 
 import jax
 import jax.numpy as jnp
@@ -21,20 +20,22 @@ import scipy.fft
 
 import jaxps
 
+try:
+    from benchmarks._common import time_calls
+except ImportError:  # run as a script
+    import pathlib
+    import sys
+
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import time_calls
+
 H, W = 1024, 1280
 
 
 def timed(fn, repeats):
     """(first-call seconds, median seconds of `repeats` further calls)."""
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        runs.append(time.perf_counter() - t0)
-    return first, float(np.median(runs))
+    t = time_calls(fn, repeats)
+    return t["first_call_s"], t["run_s_median"]
 
 
 def numpy_ps(images, pinv):

@@ -17,7 +17,6 @@ import json
 import os
 import pathlib
 import platform
-import time
 
 import cv2
 import jax
@@ -25,6 +24,14 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxps
+
+try:
+    from benchmarks._common import time_calls
+except ImportError:  # run as a script
+    import sys
+
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import time_calls
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"
@@ -167,15 +174,7 @@ def synthetic_accuracy():
 
 
 def _time(fn, repeats=1):
-    t0 = time.perf_counter()
-    jax.block_until_ready(fn())
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        runs.append(time.perf_counter() - t0)
-    out = {"first_call_s": first, "run_s_min": min(runs), "run_s_median": float(np.median(runs))}
+    out = time_calls(fn, repeats)
     print(out, flush=True)
     return out
 
