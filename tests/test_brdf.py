@@ -324,7 +324,8 @@ def test_brdf_in_the_loop_lambertian_matches_l2(scene):
     assert err[s["mask"]].max() < 0.1  # exact Lambertian data: stays at the truth
     np.testing.assert_allclose(np.asarray(res.albedo)[s["mask"]],
                                np.asarray(l2.albedo)[s["mask"]], atol=1e-3)
-    assert set(np.unique(np.asarray(res.status)[s["mask"]])) <= {0, int(jaxps.Status.NOT_CONVERGED)}
+    # Exact data and the true optimum at the start: every pixel converges within 5 steps.
+    assert np.all(np.asarray(res.status)[s["mask"]] == jaxps.Status.OK)
     with pytest.raises(ValueError, match="method"):
         jaxps.brdf_photometric_stereo(images, s["train"], method="delaunay")
 
