@@ -132,7 +132,7 @@ def ps_oren_nayar(images, lights, mask, sample_mask, thresholds, *, sigma="pixel
         raise ValueError(f"need 0 <= sigma0 < sigma_max <= pi/2, got {sigma0}, {sigma_max}")
     if max_steps < 1:
         raise ValueError(f"max_steps must be >= 1, got {max_steps}")
-    k, h, w, c = images.shape
+    _, h, w, _ = images.shape
     dtype = images.dtype
     fixed = None
     if not isinstance(sigma, str):
@@ -151,7 +151,7 @@ def ps_oren_nayar(images, lights, mask, sample_mask, thresholds, *, sigma="pixel
 
 def _ps_oren_nayar(images, lights, mask, sample_mask, thresholds, fixed, pool, form, solver,
                    max_steps, sigma0, sigma_max):
-    k, h, w, c = images.shape
+    _, h, w, _ = images.shape
     dtype = images.dtype
     base = ps_l2(images, lights, mask, sample_mask, thresholds)
     core = eqx.filter_jit(_core)
@@ -180,7 +180,7 @@ def _core(images, lights, mask, sample_mask, thresholds, base, fixed, s0, s_max,
           form, max_steps, pool_stage):
     k, h, w, c = images.shape
     dtype = images.dtype
-    dark, saturation, shadow = thresholds
+    _, saturation, shadow = thresholds
     flat = images.reshape(k, h * w, c)
     finite = jnp.all(jnp.isfinite(flat), axis=-1)
     flat = jnp.where(finite[..., None], flat, 0)
