@@ -179,6 +179,22 @@ def _time(fn, repeats=1):
     return out
 
 
+def xla_reduction(k=5, n=1 << 20):
+    """Why the solvers unroll sums over the lights: `jnp.sum(x * y, axis=0)` over a short
+    leading axis against `jaxps._reduce.sum0` (K - 1 adds), both jitted, best of 20."""
+    from jaxps._reduce import sum0
+
+    x = jax.random.uniform(jax.random.key(0), (k, n))
+    y = jax.random.uniform(jax.random.key(1), (k, n))
+    out = {"shape": [k, n]}
+    for name, fn in (("jnp_sum_axis0", lambda a, b: jnp.sum(a * b, axis=0)),
+                     ("sum0_unrolled", lambda a, b: sum0(a * b))):
+        f = jax.jit(fn)
+        out[name + "_ms"] = 1e3 * time_calls(lambda: f(x, y), 20)["run_s_min"]
+    print(out, flush=True)
+    return out
+
+
 def speed(size):
     surf = jaxps.synthetic.sphere(size, max_zenith_deg=75)
     lights = jaxps.synthetic.scanner_lights(20.0)
@@ -245,6 +261,7 @@ def main():
     result["synthetic"] = synthetic_accuracy()
     if not args.skip_speed:
         result["speed"] = speed(args.size)
+        result["speed"]["xla_reduction"] = xla_reduction()
         print(json.dumps(result["speed"], indent=1))
     result["machine"]["load_avg_at_end"] = os.getloadavg()
     with open(OUT / "reflectance.json", "w") as f:
