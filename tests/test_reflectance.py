@@ -206,7 +206,7 @@ def test_solve_pixels_rounds_match_one_round():
     lm = jaxps.BatchedLM(rtol=1e-6, atol=1e-9)
     one = solve_pixels(fn, y0, a, active, lm, max_steps=200, tile=n)
     many = solve_pixels(fn, y0, a, active, lm, max_steps=200, tile=256,
-                        rounds=((3, 1.0), (5, 0.1), (None, 0.03)))
+                        round_steps=(3, 5), chunk=0.1)
     steps = np.asarray(one[2])
     act = np.asarray(active)
     assert steps[act].max() - steps[act].min() >= 5  # a real spread of step counts

@@ -70,7 +70,7 @@ def lm_pixel(
     y0: tuple[Float[Array, ""], ...],
     solver: BatchedLM,
     *,
-    max_steps: int,
+    max_steps: int | Int[Array, ""],
     lower: tuple | None = None,
     upper: tuple | None = None,
     active: Bool[Array, ""] | bool = True,
@@ -82,7 +82,8 @@ def lm_pixel(
     - `fn`: `fn(y) -> (K,)` residuals, `y` a tuple of P scalars (P <= 3); pure, traceable.
     - `y0`: the starting tuple.
     - `solver`: a `BatchedLM` (tolerances and initial damping).
-    - `max_steps`: step limit (each step: residuals with their Jacobian, one trial residual).
+    - `max_steps`: step limit (each step: residuals with their Jacobian, one trial residual);
+      may be traced.
     - `lower`, `upper`: per-parameter bounds (scalars or None for unbounded), by projection.
     - `active`: False skips the pixel (`y0` back, converged, 0 steps).
     - `damping`: the starting damping (default `solver.damping0`), to resume a solve.
@@ -183,9 +184,10 @@ def map_pixels(f: Callable, *args, tile: int | None = TILE):
     return jax.tree_util.tree_map(join, out)
 
 
-# `solve_pixels` rounds: (steps, share of the pixels that may take them). Every pixel gets 4
-# steps; the ones still running continue in smaller and smaller compact sets.
-ROUNDS = ((4, 1.0), (4, 0.5), (8, 0.125), (None, 0.03125))
+# `solve_pixels`: step limits of the rounds before the last (which takes what is left of
+# `max_steps`), and the share of the image gathered per chunk.
+ROUND_STEPS = (4, 4, 8)
+CHUNK = 0.125
 
 
 def solve_pixels(
@@ -198,18 +200,20 @@ def solve_pixels(
     max_steps: int,
     lower: tuple | None = None,
     upper: tuple | None = None,
-    rounds: tuple = ROUNDS,
-    tile: int = TILE,
+    round_steps: tuple[int, ...] = ROUND_STEPS,
+    chunk: float = CHUNK,
+    tile: int | None = TILE,
 ) -> tuple[tuple[Float[Array, " N"], ...], Bool[Array, " N"], Int[Array, " N"]]:
     """`lm_pixel` for every pixel, in rounds so that a few slow pixels cost little.
 
     A tile runs until its slowest pixel stops, and in a flat valley (e.g. roughness near normal
-    incidence, where it barely changes the shading) a pixel can take tens of steps. So every
-    pixel first gets a few steps in tiles; then the pixels still running are gathered into
-    compact arrays (`rounds` gives (steps, share) per round: the array holds that share of N,
-    and as many of them are run as the live pixels need; the last round's steps are whatever
-    is left of `max_steps`) and continue where they stopped, damping included. The rounds
-    change only the cost: the answer is that of one long round.
+    incidence, where it barely changes the shading) a pixel can take tens of steps. So the
+    solve runs in rounds of a few steps (`round_steps`, then the rest of `max_steps`); in each
+    round the pixels still running are gathered, `chunk` of the image at a time, into compact
+    arrays that run in tiles, and continue where they stopped, damping included. A late round
+    touches only the few pixels left. The rounds change only the cost: the answer is that of
+    one long round (tested). One LM kernel serves every round (the step limit is traced), so
+    it is compiled once.
 
     **Arguments:** `fn(y, a) -> (K,)` residuals of one pixel for the parameter tuple `y` and
     that pixel's slice `a` of `args` (a pytree of `(..., N)` arrays); `y0` a tuple of `(N,)`
@@ -220,41 +224,41 @@ def solve_pixels(
     n = active.shape[0]
     bounds = {"lower": lower, "upper": upper}
 
-    def run(limit):
-        def one(y, a, act, lam):
-            return lm_pixel(lambda v: fn(v, a), y, solver, max_steps=limit, active=act,
-                            damping=lam, **bounds)
-        return one
+    def one(y, a, act, lam, limit):
+        return lm_pixel(lambda v: fn(v, a), y, solver, max_steps=limit, active=act,
+                        damping=lam, **bounds)
 
-    y = y0
     lam = jnp.full((n,), solver.damping0, y0[0].dtype)
-    done = ~active
-    steps = jnp.zeros((n,), jnp.int32)
-    left = max_steps
-    if tile is None or n <= tile:  # one tile: nothing to gain from rounds (and each costs a compile)
-        rounds = ((None, 1.0),)
-    for limit, share in rounds:
-        limit = left if limit is None else min(limit, left)
-        if limit <= 0:
-            break
-        cap = min(n, max(1, int(n * share)))
-        if cap == n:  # everyone, in place
-            y, done, taken, lam = map_pixels(run(limit), y, args, ~done, lam, tile=tile)
-            steps = steps + taken
-        else:  # the pixels still running, `cap` at a time, until none is left
-            def chunk(state, limit=limit, cap=cap):
-                y, lam, done, steps, pending = state
-                idx = jnp.nonzero(pending, size=cap, fill_value=n)[0]
-                take = lambda x: x[..., jnp.minimum(idx, n - 1)]  # noqa: E731
-                y2, done2, taken, lam2 = map_pixels(
-                    run(limit), tuple(take(v) for v in y), jax.tree_util.tree_map(take, args),
-                    idx < n, take(lam), tile=tile)
-                put = lambda x, v: x.at[idx].set(v, mode="drop")  # noqa: E731
-                return (tuple(put(a, b) for a, b in zip(y, y2)), put(lam, lam2),
-                        put(done, done2), put(steps, take(steps) + taken),
-                        put(pending, jnp.zeros_like(done2)))
+    if tile is None or n <= tile:  # one tile: nothing to gain from rounds
+        y, done, steps, _ = map_pixels(lambda *a: one(*a, max_steps), y0, args, active, lam,
+                                       tile=tile)
+        return y, done | ~active, steps
+    limits, left = [], max_steps
+    for s in round_steps:
+        if left > 0:
+            limits.append(min(s, left))
+            left -= limits[-1]
+    if left > 0:
+        limits.append(left)
+    cap = min(n, -(-max(int(n * chunk), 1) // tile) * tile)  # a whole number of tiles
 
-            y, lam, done, steps, _ = jax.lax.while_loop(
-                lambda state: jnp.any(state[-1]), chunk, (y, lam, done, steps, ~done))
-        left -= limit
+    def run_chunk(state):
+        y, lam, done, steps, pending, limit = state
+        idx = jnp.nonzero(pending, size=cap, fill_value=n)[0]
+        take = lambda x: x[..., jnp.minimum(idx, n - 1)]  # noqa: E731
+        y2, done2, taken, lam2 = map_pixels(
+            lambda *a: one(*a, limit), tuple(take(v) for v in y),
+            jax.tree_util.tree_map(take, args), idx < n, take(lam), tile=tile)
+        put = lambda x, v: x.at[idx].set(v, mode="drop")  # noqa: E731
+        return (tuple(put(a, b) for a, b in zip(y, y2)), put(lam, lam2), put(done, done2),
+                put(steps, take(steps) + taken), put(pending, jnp.zeros_like(done2)), limit)
+
+    def run_round(r, state):
+        y, lam, done, steps = state
+        out = jax.lax.while_loop(lambda st: jnp.any(st[4]), run_chunk,
+                                 (y, lam, done, steps, ~done, jnp.asarray(limits)[r]))
+        return out[:4]
+
+    state = (y0, lam, ~active, jnp.zeros((n,), jnp.int32))
+    y, _, done, steps = jax.lax.fori_loop(0, len(limits), run_round, state)
     return y, done | ~active, steps
