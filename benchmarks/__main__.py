@@ -18,6 +18,7 @@ Writes `benchmarks/results/summary.json` and `benchmarks/results/summary.png`.
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python -m benchmarks            # everything
     PYTHONPATH=src python -m benchmarks --quick --only icp core           # a subset, quickly
     PYTHONPATH=src python -m benchmarks --no-modules                      # the method sweep only
+    PYTHONPATH=src python -m benchmarks --reuse-modules                   # sweep + last topic JSONs
     PYTHONPATH=src python -m benchmarks --chart-only                      # redraw summary.png
 """
 
@@ -312,6 +313,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--only", nargs="*", metavar="TOPIC",
                     help=f"bench_<topic>.py scripts to run (default all: {', '.join(discover())})")
     ap.add_argument("--no-modules", action="store_true", help="skip the bench_*.py scripts")
+    ap.add_argument("--reuse-modules", action="store_true",
+                    help="do not run the bench_*.py scripts; chart the results/<topic>.json "
+                         "they last wrote")
     ap.add_argument("--no-sweep", action="store_true", help="skip the in-process method sweep")
     ap.add_argument("--timeout", type=float, default=1800, help="seconds per script")
     ap.add_argument("--chart-only", action="store_true",
@@ -331,6 +335,12 @@ def main(argv=None) -> dict:
     t0 = time.perf_counter()
     modules = {}
     for topic in topics:
+        out_json = RESULTS / f"{topic}.json"
+        if args.reuse_modules:
+            if out_json.exists():
+                modules[topic] = {"json": str(out_json.relative_to(ROOT)), "reused": True,
+                                  "result": json.loads(out_json.read_text())}
+            continue
         print(f"running bench_{topic} ...", flush=True)
         modules[topic] = run_module(topic, args.quick, args.timeout)
 
@@ -361,6 +371,7 @@ def main(argv=None) -> dict:
         "benchmark": "summary",
         "command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python -m benchmarks"
                    + (" --quick" if args.quick else "")
+                   + (" --reuse-modules" if args.reuse_modules else "")
                    + (f" --only {' '.join(args.only)}" if args.only else ""),
         "environment": environment(),
         "seconds": time.perf_counter() - t0,
