@@ -41,6 +41,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._batched_lm import BatchedLM, solve_pixels
+from ._l2 import first_status
 from ._reduce import sum0
 from ._status import Status
 
@@ -236,15 +237,11 @@ def default_solver(dtype=jnp.float32) -> optx.LevenbergMarquardt:
     return optx.LevenbergMarquardt(rtol=1e-4, atol=1e-6)
 
 
-def _pixel_albedo(i, w, f, rho_given, refit):
-    """Closed-form albedo $\\rho = \\sum w I f / \\sum w f^2$ (variable projection) or the given.
-
-    `i`, `w`, `f` share a leading sample axis `K`.
-    """
-    num = sum0(w * i * f)
-    den = sum0(w * f * f)
-    rho = num / jnp.where(den > 0, den, 1)
-    return jnp.where(refit, jnp.where(den > 0, rho, 0), rho_given)
+def _albedo(i, w, f):
+    """Closed-form albedo $\\rho = \\sum w I f / \\sum w f^2$ (variable projection), 0 where no
+    sample; `i`, `w`, `f` share a leading sample axis `K`."""
+    num, den = sum0(w * i * f), sum0(w * f * f)
+    return jnp.where(den > 0, num / jnp.where(den > 0, den, 1), 0)
 
 
 def _basis(cos_i, cos_r, p, form):
@@ -276,7 +273,7 @@ def _residuals(s, data, form, refit):
     """Weighted residuals $w (I - \\rho f)$; `data` = (i, w, geo, rho), `(K, N)` and `(N,)`."""
     i, w, geo, rho_given = data
     f = _model(s.astype(i.dtype), geo, form)
-    rho = _pixel_albedo(i, w, f, rho_given, refit)
+    rho = _albedo(i, w, f) if refit else rho_given
     return w * (i - rho[None] * f)
 
 
@@ -298,6 +295,21 @@ def _ratio(s):
     return b / a
 
 
+def _sums(data):
+    """Per-pixel weighted sums $S_{cc}, S_{cg}, S_{gg}, S_{ci}, S_{gi}, S_{ii}$ (qualitative)."""
+    i, w, (c, g), _ = data
+    return tuple(sum0(w * x * y) for x, y in ((c, c), (c, g), (g, g), (c, i), (g, i), (i, i)))
+
+
+def _explained(sums, t):
+    """$F(t) = (S_{ci} + t S_{gi})^2 / (S_{cc} + 2t S_{cg} + t^2 S_{gg})$: the part of
+    $\\sum I^2$ that $f \\propto c + t g$ explains with the best albedo (see `_exact_pixels`)."""
+    scc, scg, sgg, sci, sgi = sums[:5]
+    num = sci + t * sgi
+    den = scc + 2 * t * scg + t * t * sgg
+    return jnp.where(den > 0, num * num / jnp.where(den > 0, den, 1), 0)
+
+
 def _exact_pixels(data, s_max):
     """Per-pixel $s$ of the qualitative model with the albedo free, exactly, in closed form.
 
@@ -310,9 +322,8 @@ def _exact_pixels(data, s_max):
     $t$ by `_s_from_ratio`. No iteration: the same minimum a converged
     Levenberg–Marquardt finds (tested), for every pixel at once.
     """
-    i, w, (c, g), _ = data
-    scc, scg, sgg = (sum0(w * x * y) for x, y in ((c, c), (c, g), (g, g)))
-    sci, sgi = sum0(w * c * i), sum0(w * g * i)
+    i = data[0]
+    scc, scg, sgg, sci, sgi, _ = _sums(data)
     det = scc * sgg - scg * scg
     ok = det > 1e-9 * jnp.maximum(scc * sgg, jnp.finfo(i.dtype).tiny)
     det = jnp.where(ok, det, 1)
@@ -322,23 +333,13 @@ def _exact_pixels(data, s_max):
     t_star = jnp.where(ok & (rho_a > 0), jnp.clip(u / jnp.where(rho_a > 0, rho_a, 1), 0, t_max),
                        0)
 
-    def fit(t):
-        num = sci + t * sgi
-        den = scc + 2 * t * scg + t * t * sgg
-        return jnp.where(den > 0, num * num / jnp.where(den > 0, den, 1), 0)
-
-    f0, f_star, f_max = fit(jnp.zeros_like(t_star)), fit(t_star), fit(t_max)
+    sums = (scc, scg, sgg, sci, sgi)
+    f0, f_star, f_max = (_explained(sums, t) for t in (jnp.zeros_like(t_star), t_star, t_max))
     # Ties go to the smaller roughness (Lambert when sigma is not identifiable).
     t = jnp.where(f_star > f0, t_star, 0)
     t = jnp.where(f_max > jnp.maximum(f0, f_star), t_max, t)
     s = jnp.where(t >= t_max, s_max, _s_from_ratio(t))
     return jnp.clip(s, 0, s_max)
-
-
-def _sums(data):
-    """Per-pixel weighted sums $S_{cc}, S_{cg}, S_{gg}, S_{ci}, S_{gi}, S_{ii}$ (qualitative)."""
-    i, w, (c, g), _ = data
-    return tuple(sum0(w * x * y) for x, y in ((c, c), (c, g), (g, g), (c, i), (g, i), (i, i)))
 
 
 def _sum_residuals(s, sums):
@@ -349,11 +350,8 @@ def _sum_residuals(s, sums):
     Jacobian has N rows instead of K N. A constant $10^{-6} S_{ii}$ is added under the root
     (it moves no minimum) to keep the root's derivative finite at a perfect fit.
     """
-    scc, scg, sgg, sci, sgi, sii = sums
-    t = _ratio(s.astype(sii.dtype))
-    num = sci + t * sgi
-    den = scc + 2 * t * scg + t * t * sgg
-    fit = jnp.where(den > 0, num * num / jnp.where(den > 0, den, 1), 0)
+    sii = sums[5]
+    fit = _explained(sums, _ratio(s.astype(sii.dtype)))
     used = sii > 0  # pixels with no sample (outside the mask) add nothing, gradient included
     cost = jnp.where(used, jnp.maximum(sii - fit, 0) + 1e-6 * sii, 1)
     return jnp.where(used, jnp.sqrt(cost), 0)
@@ -386,9 +384,8 @@ def _solve_one(data, s0, s_max, form, refit, solver, max_steps, min_samples, red
     denom = jnp.maximum(n, 1).astype(dtype)
     rms = jnp.sqrt(jnp.sum(r**2) / denom)
     rms0 = jnp.sqrt(jnp.sum(r0**2) / denom)
-    status = jnp.where(n < min_samples, Status.TOO_FEW_LIGHTS,
-                       jnp.where(~converged, Status.NOT_CONVERGED,
-                                 jnp.where(at_bound, Status.AT_BOUND, Status.OK))).astype(jnp.int32)
+    status = first_status([(n < min_samples, Status.TOO_FEW_LIGHTS),
+                           (~converged, Status.NOT_CONVERGED), (at_bound, Status.AT_BOUND)])
     sigma = jnp.where(n < min_samples, 0, jnp.sqrt(jnp.maximum(s_proj, 0)))
     sigma = jnp.where(jnp.isfinite(sigma), sigma, 0).astype(dtype)
     steps = sol.stats["num_steps"].astype(jnp.int32)
@@ -430,9 +427,8 @@ def _fit_pixels(data, s0, s_max, form, refit, solver, max_steps, min_samples):
     denom = jnp.maximum(n, 1).astype(dtype)
     rms = jnp.sqrt(sum0(r**2) / denom)
     rms0 = jnp.sqrt(sum0(r0**2) / denom)
-    status = jnp.where(n < min_samples, Status.TOO_FEW_LIGHTS,
-                       jnp.where(~done, Status.NOT_CONVERGED,
-                                 jnp.where(at_bound, Status.AT_BOUND, Status.OK))).astype(jnp.int32)
+    status = first_status([(n < min_samples, Status.TOO_FEW_LIGHTS),
+                           (~done, Status.NOT_CONVERGED), (at_bound, Status.AT_BOUND)])
     sigma = jnp.where(n < min_samples, 0, jnp.sqrt(s_proj)).astype(dtype)
     return sigma, status, steps, rms.astype(dtype), rms0.astype(dtype), n.astype(jnp.int32)
 
@@ -485,7 +481,7 @@ def _fit(images, normals, albedo, lights, mask, sample_mask, labels, s0, s_max, 
         labels >= 0, out[0][jnp.clip(labels, 0, n_labels - 1)], 0)
     sig = jnp.broadcast_to(sig, (h, wd))
     f = _shading(cos_i, cos_r[None], p, (sig**2)[None], form)
-    rho = _pixel_albedo(i, w, f, albedo, refit)
+    rho = _albedo(i, w, f) if refit else albedo
     rho = jnp.where(mask, rho, 0).astype(dtype)
     return RoughnessFit(*out, rho)
 

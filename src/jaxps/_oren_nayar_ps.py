@@ -27,9 +27,11 @@ from ._batched_lm import BatchedLM, map_pixels, solve_pixels
 from ._l2 import PSResult, ps_l2, solve3
 from ._oren_nayar import (
     SIGMA_MAX,
+    _albedo,
     _basis,
     _check_form,
     _exact_pixels,
+    _geometry,
     _shading,
     fit_roughness,
 )
@@ -50,18 +52,6 @@ def _unit(p, q):
     return -p * inv, -q * inv, inv
 
 
-def _geometry(n, lights):
-    """$c_i$, $c_r$, $P$ of one pixel: `(K,)`, scalar, `(K,)`; the sum over xyz written out."""
-    cos_i = lights[:, 0] * n[0] + lights[:, 1] * n[1] + lights[:, 2] * n[2]
-    return cos_i, n[2], lights[:, 2] - cos_i * n[2]
-
-
-def _albedo(i, w, f):
-    """Closed-form albedo $\\sum w I f / \\sum w f^2$ of one pixel (0 when no sample)."""
-    num, den = sum0(w * i * f), sum0(w * f * f)
-    return jnp.where(den > 0, num / jnp.where(den > 0, den, 1), 0)
-
-
 def _start(i, w, n, s, lights, s_max, joint, form, steps):
     """A cheap start for the LM: `steps` rounds of (exact $s$ for the normal, qualitative form
     only; then the normal from Lambertian least squares on the images divided by the current
@@ -80,13 +70,13 @@ def _start(i, w, n, s, lights, s_max, joint, form, steps):
         x, _ = solve3(m, [sum0(w * lights[:, a] * i / ratio) for a in range(3)])
         norm = jnp.sqrt(x[0] ** 2 + x[1] ** 2 + x[2] ** 2)
         good = (norm > 0) & (x[2] > 0)
-        n = tuple(jnp.where(good, x[a] / jnp.where(good, norm, 1), n[a]) for a in range(3))
+        n = jnp.where(good, x / jnp.where(good, norm, 1), n)
     return n, s
 
 
 def _pixel_start(i, w, n0, s0, lights, s_max, *, joint, form):
     """One pixel's LM start `(p, q, s)` from its Lambertian normal `n0` `(3,)` (see `_start`)."""
-    n, s = _start(i, w, (n0[0], n0[1], n0[2]), s0, lights, s_max, joint, form, _START_STEPS)
+    n, s = _start(i, w, n0, s0, lights, s_max, joint, form, _START_STEPS)
     nz = jnp.maximum(n[2], 0.05)
     return -n[0] / nz, -n[1] / nz, s
 
@@ -99,7 +89,7 @@ def _resid(y, a, lights, joint, form):
     the JVP of that closed form made an LM step 10x slower on XLA-CPU; measured, not kept.
     """
     i, w, s = a
-    f = _shading(*_geometry(_unit(y[0], y[1]), lights), y[2] if joint else s, form)
+    f = _shading(*_geometry(jnp.stack(_unit(y[0], y[1])), lights), y[2] if joint else s, form)
     return w * (i - _albedo(i, w, f) * f)
 
 
@@ -210,8 +200,8 @@ def _core(images, lights, mask, sample_mask, thresholds, base, fixed, s0, s_max,
     keep_l2 = ok0 & ~enough
     normals = jnp.where(keep_l2[:, None], n0, normals)
     s = jnp.where(keep_l2, 0, s)
-    cos_i, cos_r, p = _geometry(normals.T[:, None], lights[..., None])  # (K, N), (1, N)
-    f = _shading(cos_i, cos_r, p, s[None], form)
+    cos_i, cos_r, p = _geometry(normals, lights)  # (K, N), (N,), (K, N)
+    f = _shading(cos_i, cos_r[None], p, s[None], form)
     wu = used.astype(dtype)
     rho = jnp.stack([_albedo(flat[..., j], wu, f) for j in range(c)], axis=-1)  # (N, C)
     res = jnp.mean(flat - rho[None] * f[..., None], axis=-1)
