@@ -32,6 +32,14 @@ import scipy.ndimage
 
 import jaxps
 
+try:
+    from benchmarks._common import clean_frames
+except ImportError:  # run as a script
+    import sys
+
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import clean_frames
+
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA = pathlib.Path(os.environ.get("JAXPS_DATA", ROOT.parent / "shared" / "data"))
 OUT = ROOT / "benchmarks" / "results"
@@ -54,7 +62,9 @@ METHODS = {  # name -> fit_brdf keywords
 
 
 def load_yale(subject: str):
-    """(images (K, H, W) in [0, 1] ambient-subtracted, (azimuth, elevation) list) of a subject."""
+    """(images (K, H, W) in [0, 1] ambient-subtracted, (azimuth, elevation) list, (K,) bool of
+    the frames `jaxps.check_frames` passes) of a subject. The check runs on the frames within
+    60 deg of the view axis (the ones used here); farther ones are counted as passed, unused."""
     folder = DATA / "yaleb" / subject
     ambient = cv2.imread(str(folder / f"{subject}_P00_Ambient.pgm"), cv2.IMREAD_UNCHANGED)
     images, angles = [], []
@@ -65,17 +75,30 @@ def load_yale(subject: str):
         raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED).astype(np.float32)
         images.append((raw - ambient.astype(np.float32)) / 255.0)
         angles.append(ae)
-    return np.stack(images), angles
+    images = np.stack(images)
+    return images, angles, clean_frames(images, angles, subject)
 
 
 def load_subject(subject: str):
-    """Frames, Yale B angles, unit lights, zenith angles (deg) and the many-light reference
-    (L2 PS over every light within 50 deg of the view axis) of one subject."""
-    images, angles = load_yale(subject)
+    """Frames, Yale B angles, unit lights, zenith angles (deg), the frames that passed
+    `check_frames`, and the many-light reference (L2 PS over every clean light within 50 deg of
+    the view axis) of one subject."""
+    images, angles, clean = load_yale(subject)
     lights = jaxps.lights_from_angles(*np.array(angles, float).T)
     zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
-    near = zenith <= 50
-    return images, angles, lights, zenith, jaxps.photometric_stereo(images[near], lights[near])
+    near = (zenith <= 50) & clean
+    return (images, angles, lights, zenith, clean,
+            jaxps.photometric_stereo(images[near], lights[near]))
+
+
+def split(angles, zenith, clean, set_name):
+    """Training frames (the named set less the flagged ones, which the pipeline drops) and the
+    test frames (every other clean light within 60 deg), as index lists."""
+    named = [angles.index(a) for a in TRAIN_SETS[set_name]]
+    train = [i for i in named if clean[i]]
+    test60 = [i for i in range(len(angles))
+              if i not in named and zenith[i] <= 60 and clean[i]]
+    return train, test60
 
 
 def face_mask(train_images, ps):
@@ -118,6 +141,9 @@ def loo_gray(loo):
         return None
     out = {}
     for k, v in loo.items():
+        if k == "skipped_folds":
+            out[k] = v
+            continue
         scale = 1.0 if k == "pooled_factor" else 255.0**2 if k.startswith("mse") else 255.0
         out[k] = [x * scale for x in v] if isinstance(v, list) else v * scale
     return out
@@ -127,22 +153,26 @@ def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), methods=Non
     methods = METHODS if methods is None else {n: METHODS[n] for n in methods}
     results = []
     for subject in subjects:
-        images, angles = load_yale(subject)
-        lights = jaxps.lights_from_angles(*np.array(angles, float).T)
-        zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
+        images, angles, lights, zenith, clean, _ = load_subject(subject)
         for set_name in sets:
-            train = [angles.index(a) for a in TRAIN_SETS[set_name]]
-            test60 = [i for i in range(len(angles)) if i not in train and zenith[i] <= 60]
+            train, test60 = split(angles, zenith, clean, set_name)
             ps = jaxps.photometric_stereo(images[train], lights[train])
             mask = face_mask(images[train], ps)
             normals, albedo = ps.normals, ps.albedo
             obs = images[test60]
             near = np.array([zenith[i] <= 30 for i in test60])
             row = {"subject": subject, "train_set": set_name,
-                   "train_lights_deg": TRAIN_SETS[set_name],
+                   "train_lights_deg": [angles[i] for i in train],
+                   "flagged_frames_deg": [angles[i] for i in range(len(angles))
+                                          if not clean[i]],
                    "test_lights_60": len(test60), "test_lights_30": int(near.sum()),
                    "mask_pixels": int(mask.sum()), "methods": {}}
             for name, kw in methods.items():
+                if kw.get("shrink") and len(train) < 5:
+                    row["methods"][name] = {"skipped": f"shrink='loo' needs 5 frames, the "
+                                                       f"set has {len(train)} clean ones"}
+                    print(f"{subject} {set_name} {name}: skipped ({len(train)} frames)")
+                    continue
                 t = time.perf_counter()
                 model = jaxps.fit_brdf(images[train], normals, albedo, lights[train], mask=mask,
                                        key=jax.random.key(0), **kw)
@@ -335,15 +365,15 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
     fitted on the corrected frames (the folds re-run L2 PS on the corrected frames)."""
     out = []
     for subject in subjects:
-        images, angles, lights, zenith, ref = load_subject(subject)
-        train = [angles.index(a) for a in TRAIN_SETS[set_name]]
-        test60 = [i for i in range(len(angles)) if i not in train and zenith[i] <= 60]
+        images, angles, lights, zenith, clean, ref = load_subject(subject)
+        train, test60 = split(angles, zenith, clean, set_name)
         near = np.array([zenith[i] <= 30 for i in test60])
         mask = face_mask(images[train], jaxps.photometric_stereo(images[train], lights[train]))
         obs = images[test60]
         sel60 = np.broadcast_to(mask, obs.shape)
         sel30 = sel60 & near[:, None, None]
-        row = {"subject": subject, "train_set": set_name, "reference_lights": int(np.sum(zenith <= 50)),
+        row = {"subject": subject, "train_set": set_name,
+               "reference_lights": int(np.sum((zenith <= 50) & clean)),
                "estimates": {}}
         for how in ("none", "mean", "frontal", "semi_calibrated"):
             e = np.asarray(jaxps.intensity_estimate(images[train], lights[train], mask=mask,
@@ -353,8 +383,8 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
             st = jaxps.evaluate.angular_stats(ps.normals, ref.normals, mask=mask)
             r = {"intensities": e.tolist(), "normals_median_deg": st["median_deg"],
                  "normals_mean_deg": st["mean_deg"], "methods": {}}
-            names = ["lambertian", "mlp_ratio"] + (["mlp_ratio_loo"] if how != "semi_calibrated"
-                                                     else [])
+            loo = how != "semi_calibrated" and len(train) >= 5  # shrink="loo" needs 5
+            names = ["lambertian", "mlp_ratio"] + (["mlp_ratio_loo"] if loo else [])
             for name in names:
                 model = jaxps.fit_brdf(frames, ps.normals, ps.albedo, lights[train], mask=mask,
                                        key=jax.random.key(0), **METHODS[name])
@@ -380,11 +410,12 @@ def loop(subject="yaleB01", set_name="cross"):
     light within 50 degrees of the view axis (the many-light reference)."""
     from jaxps._brdf_ps import brdf_photometric_stereo
 
-    images, angles, lights, zenith, ref = load_subject(subject)
-    train = [angles.index(a) for a in TRAIN_SETS[set_name]]
+    images, angles, lights, zenith, clean, ref = load_subject(subject)
+    train, _ = split(angles, zenith, clean, set_name)
     ps = jaxps.photometric_stereo(images[train], lights[train])
     mask = face_mask(images[train], ps)
-    out = {"subject": subject, "train_set": set_name, "reference_lights": int(np.sum(zenith <= 50)),
+    out = {"subject": subject, "train_set": set_name,
+           "reference_lights": int(np.sum((zenith <= 50) & clean)),
            "l2": jaxps.evaluate.angular_stats(ps.normals, ref.normals, mask=mask)}
     print("l2", out["l2"], flush=True)
     for method in ("lambertian", "mlp_ratio"):
@@ -405,6 +436,8 @@ def points(res):
     pts = []
     for row in res.get("accuracy", []):
         for name, m in row["methods"].items():
+            if "skipped" in m:
+                continue
             for limit in ("60", "30"):
                 pts.append({"panel": f"relight {row['subject']} {row['train_set']} <={limit} deg",
                             "method": name, "run_s": m["relight_s"], "error": m[f"rmse_{limit}"],
@@ -420,7 +453,7 @@ def chart(acc, path):
 
     fig, axes = plt.subplots(1, len(acc), figsize=(4 * len(acc), 3.6), sharey=True, squeeze=False)
     for ax, row in zip(axes[0], acc):
-        names = list(row["methods"])
+        names = [n for n, m in row["methods"].items() if "skipped" not in m]
         x = np.arange(len(names))
         ax.bar(x - 0.2, [row["methods"][n]["rmse_60"] for n in names], 0.4, label="<= 60 deg")
         ax.bar(x + 0.2, [row["methods"][n]["rmse_30"] for n in names], 0.4, label="<= 30 deg")

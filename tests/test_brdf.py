@@ -223,7 +223,22 @@ def test_relight_training_lights_reproduces_training_error(scene, fitted):
     assert model.fit.n_samples == 5 * int(s["mask"].sum())  # every sample: same set as below
     out = jaxps.relight(model, s["normals"], s["albedo"], s["train"], mask=s["mask"])
     assert out.shape == s["images"].shape and out.dtype == jnp.float32
-    np.testing.assert_allclose(rmse(out, s["images"], s["mask"]), model.fit.rmse, rtol=1e-3)
+    # the training fit is the relight times each frame's fitted brightness factor ...
+    gains = np.asarray(model.fit.frame_gains)[:, None, None]
+    np.testing.assert_allclose(rmse(gains * np.asarray(out), s["images"], s["mask"]),
+                               model.fit.rmse, rtol=1e-3)
+    # ... and this scene's frames have none: the factors stay near 1 (they take up a little of
+    # the frontal frame's specular lobe) and the relight at g = 1 is near the training error,
+    # far below Lambert's
+    assert np.allclose(model.fit.frame_gains, 1.0, atol=0.03), model.fit.frame_gains
+    assert rmse(out, s["images"], s["mask"]) <= 1.2 * model.fit.rmse
+    assert rmse(out, s["images"], s["mask"]) < 0.5 * fitted["lambertian"].fit.rmse
+    # without frame gains the relight of the training lights is the training fit itself
+    plain = jaxps.fit_brdf(s["images"], s["normals"], s["albedo"], s["train"], mask=s["mask"],
+                           method="mlp_ratio", key=jax.random.key(0), frame_gains=False, **FAST)
+    assert plain.fit.frame_gains is None
+    out = jaxps.relight(plain, s["normals"], s["albedo"], s["train"], mask=s["mask"])
+    np.testing.assert_allclose(rmse(out, s["images"], s["mask"]), plain.fit.rmse, rtol=1e-3)
     assert np.all(np.asarray(out)[:, ~s["mask"]] == 0)
 
 
@@ -279,6 +294,31 @@ def test_mlp_degrades_to_lambert_where_flagged(scene, fitted):
     assert np.all(np.abs(got - lam)[flag] <= bound[flag] + 1e-6)
 
 
+def test_frame_gains_recovered_and_not_learned_as_reflectance(scene):
+    """Non-Lambertian frames whose flashes fired at known, unequal strengths, with the true
+    normals and albedo: `frame_gains` recovers the strengths (up to their geometric mean), and
+    the relight at unit gain beats the network trained without them, which learns the flashes
+    as reflectance. (With normals from five-light PS on the same frames the normals take up
+    most of the gains instead: semi-calibrated PS is near-degenerate for near-frontal lights.)"""
+    s = scene
+    true_gains = np.array([1.0, 1.15, 0.9, 0.85, 1.1])
+    mean = np.exp(np.mean(np.log(true_gains)))
+    images = s["images"] * true_gains[:, None, None].astype(np.float32)
+    truth = s["truth"] * mean  # the scene as lit by the flashes' geometric mean
+    kw = dict(mask=s["mask"], method="mlp_ratio", key=jax.random.key(0), **FAST)
+    err = {}
+    for name, extra in (("gains", {}), ("no_gains", {"frame_gains": False}),
+                        ("lambertian", {"method": "lambertian"})):
+        model = jaxps.fit_brdf(images, s["normals"], s["albedo"] * mean, s["train"],
+                               **{**kw, **extra})
+        err[name] = rmse(jaxps.relight(model, s["normals"], s["albedo"] * mean, s["test"]),
+                         truth, s["mask"])
+        if name == "gains":
+            np.testing.assert_allclose(model.fit.frame_gains, true_gains / mean, atol=0.02)
+    assert err["gains"] < 0.6 * err["no_gains"], err
+    assert err["gains"] < 0.5 * err["lambertian"], err
+
+
 def test_loo_shrink_keeps_real_reflectance_and_drops_frame_gains(scene):
     """`shrink="loo"` keeps the correction on a non-Lambertian scene and removes it when the
     only departure from Lambert's law is an unknown brightness per frame (Yale B's case)."""
@@ -309,6 +349,9 @@ def test_loo_shrink_keeps_real_reflectance_and_drops_frame_gains(scene):
     with pytest.raises(ValueError, match="shrink"):
         jaxps.fit_brdf(s["images"], s["normals"], s["albedo"], s["train"], method="delaunay",
                        shrink="loo")
+    # four frames leave three per fold, which Lambert's law fits exactly: no test at all
+    with pytest.raises(ValueError, match="K >= 5"):
+        jaxps.fit_brdf(s["images"][:4], s["normals"], s["albedo"], s["train"][:4], **kw)
 
 
 # --------------------------------------------------------------------------- BRDF in the loop
@@ -381,6 +424,26 @@ def test_cli_relight_yale(data, tmp_path):
     with Image.open(out / "relight.gif") as gif:
         assert gif.n_frames == 4
     assert main(["relight", *frames, "--yale-names", "--light", "35", "--out", str(out)]) == 2
+
+
+def test_cli_relight_drops_combed_frame(data, tmp_path):
+    """yaleB02's +25,0 frame is interlace-combed (every other band of rows dark);
+    `--check-quality` drops it and fits on the other four, and the report says so."""
+    import json
+
+    from jaxps.cli import main
+
+    folder = data / "yaleb" / "yaleB02"
+    names = ["A+000E+00", "A+000E+20", "A+000E-20", "A+025E+00", "A-025E+00"]
+    frames = [str(folder / f"yaleB02_P00{n}.pgm") for n in names]
+    out = tmp_path / "relit"
+    rc = main(["relight", *frames, "--yale-names", "--ambient",
+               str(folder / "yaleB02_P00_Ambient.pgm"), "--method", "lambertian",
+               "--circle-frames", "2", "--check-quality", "--out", str(out)])
+    assert rc == 0
+    summary = json.loads((out / "relight.json").read_text())
+    assert summary["dropped_frames"] == ["yaleB02_P00A+025E+00.pgm"]
+    assert len(summary["frames"]) == 4
 
 
 def test_jaxtyping_annotations_hold(scene, fitted):

@@ -24,6 +24,12 @@ $$ I = \\rho \\max(0, \\cos\\theta_i) + a\\, w(u)\\, B \\tanh g(\\tilde u, x, y)
   network models $I/\\rho$, albedo a known factor) and $a = \\bar\\rho$ (the median albedo) for
   `method="mlp"` (the network models intensity; albedo enters only through $x, y$).
 
+Training frames are fitted as $I_k = g_k \\cdot (\\ldots)$ with one brightness factor $g_k$ per
+frame ($\\prod_k g_k = 1$; `frame_gains=True`, the default): a flash that fired brighter or
+dimmer is then not learned as reflectance, and `relight` renders at $g = 1$. On Yale B, whose
+flashes vary by about ±10%, this is what turns the correction from worse than Lambert's law to
+better on held-out lights (docs/brdf.md).
+
 `lambertian_base=False` gives the paper's plain design ($I = \\bar\\rho\\, g$ or
 $I = \\rho\\, g$, unclamped inputs) for comparison.
 
@@ -108,7 +114,10 @@ class BRDFFit(NamedTuple):
       frames pooled, `"lambertian"`, `"full"`, `"shrunk"` (correction scaled by 0, 1 and $s$);
       `"pooled_factor"` ($s^*$ before the one-SE rule), `"mse_diff_mean"`, `"mse_diff_se"`
       (per-fold MSE change at $s^*$ against Lambert, and its standard error) and the per-fold
-      RMSEs `"folds_lambertian"`, `"folds_full"`; else None.
+      RMSEs `"folds_lambertian"`, `"folds_full"`, and `"skipped_folds"` (indices of the
+      left-out frames whose fold was skipped: the other lights did not span 3-D); else None.
+    - `frame_gains`: with `fit_brdf(..., frame_gains=True)`, the `K` fitted brightness factors
+      of the training frames (geometric mean 1; the model renders at 1); else None.
     """
 
     steps: int
@@ -121,6 +130,7 @@ class BRDFFit(NamedTuple):
     message: str
     shrink: float = 1.0
     loo_rmse: dict | None = None
+    frame_gains: tuple[float, ...] | None = None
 
 
 class BRDFModel(eqx.Module):
@@ -231,31 +241,43 @@ def _init_mlp(key, sizes, dtype):
 # ----------------------------------------------------------------------------- training
 
 
-def _train_mlp(params, feats, rho, target, box_lo, box_hi, support, rho_ref, *, bound, cell, base,
-               ratio, use_xy, solver, max_steps):
-    flat0, unravel = ravel_pytree(params)
+def _train_mlp(params, log_gains, feats, rho, target, frame, box_lo, box_hi, support, rho_ref, *,
+               bound, cell, base, ratio, use_xy, fit_gains, solver, max_steps):
+    """LM on the flat parameters (and, with `fit_gains`, the `(K,)` log-gains of the frames,
+    centred so their geometric mean is 1). `frame`: `(N,)` frame index of each sample."""
+    flat_mlp, unravel = ravel_pytree(params)
+    n_mlp = flat_mlp.size
+    flat0 = jnp.concatenate([flat_mlp, log_gains]) if fit_gains else flat_mlp
 
-    def pred(p, f, r):
-        return _predict_one(unravel(p), f, r, box_lo, box_hi, support, rho_ref, bound, cell, base,
-                            ratio, use_xy)
+    def centred(p):
+        g = p[n_mlp:]
+        return g - jnp.mean(g)
+
+    def pred(p, f, r, k):
+        out = _predict_one(unravel(p[:n_mlp]), f, r, box_lo, box_hi, support, rho_ref, bound,
+                           cell, base, ratio, use_xy)
+        return out * jnp.exp(centred(p)[k]) if fit_gains else out
 
     @jax.custom_jvp
     def residuals(p, args):
-        f, r, t = args
-        return jax.vmap(pred, in_axes=(None, 0, 0))(p, f, r) - t
+        f, r, t, k = args
+        return jax.vmap(pred, in_axes=(None, 0, 0, 0))(p, f, r, k) - t
 
     @residuals.defjvp
     def _residuals_jvp(primals, tangents):
-        p, (f, r, t) = primals
+        p, (f, r, t, k) = primals
         dp, _ = tangents
         # Per-sample reverse mode: J is (N, P) at about the cost of N forward passes.
-        value, jac = jax.vmap(jax.value_and_grad(pred), in_axes=(None, 0, 0))(p, f, r)
+        value, jac = jax.vmap(jax.value_and_grad(pred), in_axes=(None, 0, 0, 0))(p, f, r, k)
         return value - t, jac @ dp
 
-    sol = optx.least_squares(residuals, solver, flat0, args=(feats, rho, target),
-                             max_steps=max_steps, throw=False)
-    res = residuals(sol.value, (feats, rho, target))
-    return unravel(sol.value), sol.stats["num_steps"], sol.result == optx.RESULTS.successful, res
+    args = (feats, rho, target, frame)
+    sol = optx.least_squares(residuals, solver, flat0, args=args, max_steps=max_steps,
+                             throw=False)
+    res = residuals(sol.value, args)
+    gains = jnp.exp(centred(sol.value)) if fit_gains else jnp.ones_like(log_gains)
+    return (unravel(sol.value[:n_mlp]), gains, sol.stats["num_steps"],
+            sol.result == optx.RESULTS.successful, res)
 
 
 _train_mlp_jit = eqx.filter_jit(_train_mlp)
@@ -352,6 +374,7 @@ def fit_brdf(
     saturation: float = 1.0,
     shrink: str | None = None,
     ps_method: str = "l2",
+    frame_gains: bool = True,
 ) -> BRDFModel:
     """Fit a BRDF to K images of one object with known normals, albedo and lights.
 
@@ -381,7 +404,8 @@ def fit_brdf(
     - `shrink`: `"loo"` scales the fitted correction by a factor $s \\in [0, 1]$ chosen by
       leave-one-light-out cross-validation on the training frames only: for each frame $j$,
       normals and albedo are re-estimated from the other K-1 frames
-      (`photometric_stereo(method=ps_method)`, K >= 4), the same model is fitted on those K-1
+      (`photometric_stereo(method=ps_method)`, K >= 5; a fold whose K-1 lights do not span
+      3-D is skipped, and at least two folds must remain), the same model is fitted on those K-1
       frames, and its correction $c_j$ and Lambert's prediction $L_j$ of the left-out frame are
       compared with the frame $I_j$; $s^*$ minimises the pooled squared error
       $\\sum_j \\lVert I_j - L_j - s\\, c_j \\rVert^2$ (closed form, clipped to [0, 1]; 0 when the
@@ -390,6 +414,11 @@ def fit_brdf(
       data justify). Costs K + 1 fits. MLP methods with `lambertian_base=True` only.
     - `ps_method`: the photometric-stereo method for the folds of `shrink="loo"` (use the one
       that gave `normals` and `albedo`).
+    - `frame_gains`: MLP methods: fit one brightness factor per training frame with the
+      network, $I_k = g_k\\, f(\\cdot)$ with $\\prod_k g_k = 1$, so that a flash that fired
+      brighter or dimmer in one frame is not learned as reflectance; `relight` renders at
+      $g = 1$ and `model.fit.frame_gains` reports them. Default True (Yale B's flashes vary
+      by about ±10%, see docs/brdf.md); False is the paper's training.
 
     **Returns:** a `BRDFModel`; `model.fit` is a `BRDFFit` (steps, converged, mse, rmse, R).
 
@@ -405,9 +434,11 @@ def fit_brdf(
         raise ValueError("shrink='loo' scales the correction to Lambert's law: it needs "
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
-    if shrink is not None and images.shape[0] < 4:
-        raise ValueError(f"shrink='loo' needs K >= 4 frames (K-1 >= 3 for photometric stereo), "
-                         f"got {images.shape[0]}")
+    if shrink is not None and images.shape[0] < 5:
+        raise ValueError(
+            f"shrink='loo' needs K >= 5 frames, got {images.shape[0]}: with K-1 = 3 frames per "
+            "fold Lambert's law fits each fold exactly, its correction is zero and the test "
+            "says nothing")
     dtype = images.dtype
     key = jax.random.key(0) if key is None else key
     k, h, w = images.shape
@@ -423,6 +454,7 @@ def fit_brdf(
         pick = np.asarray(jax.random.choice(key_sample, idx.size, (n_samples,), replace=False))
         idx = np.sort(idx[pick])
     f = feats.reshape(-1, 5)[idx]
+    frame = jnp.asarray(idx // (h * w), jnp.int32)
     rho = jnp.broadcast_to(albedo, (k, h, w)).reshape(-1)[idx]
     target = images.reshape(-1)[idx]
     u = jax.vmap(_box_coords)(f)
@@ -451,24 +483,28 @@ def fit_brdf(
     if solver is None:
         solver = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-6,
                                          linear_solver=lx.Normal(lx.Cholesky()))
-    params, steps, ok, res = _train_mlp_jit(
-        params, f, rho, target, box_lo, box_hi, support, rho_ref, bound=float(bound), cell=cell,
-        base=bool(lambertian_base), ratio=ratio, use_xy=bool(use_xy), solver=solver,
-        max_steps=int(max_steps))
+    params, gains, steps, ok, res = _train_mlp_jit(
+        params, jnp.zeros((k,), dtype), f, rho, target, frame, box_lo, box_hi, support, rho_ref,
+        bound=float(bound), cell=cell, base=bool(lambertian_base), ratio=ratio,
+        use_xy=bool(use_xy), fit_gains=bool(frame_gains), solver=solver, max_steps=int(max_steps))
     model = BRDFModel(method, params, **common)
     msg = "converged" if bool(ok) else f"stopped at max_steps={max_steps} or failed"
-    pred = res + target
+    gain = gains[frame]
+    pred = res + target  # the training fit, frame gains included
+    extra = {"frame_gains": tuple(float(g) for g in np.asarray(gains))} if frame_gains else {}
     if shrink is None:
-        return _with_fit(model, pred, target, int(steps), bool(ok), t0, msg)
+        return _with_fit(model, pred, target, int(steps), bool(ok), t0, msg, **extra)
     options = dict(method=method, key=key, n_samples=n_samples, hidden=hidden, bound=bound,
                    support_deg=support_deg, min_count=min_count, lambertian_base=True,
-                   use_xy=use_xy, solver=solver, max_steps=max_steps, saturation=saturation)
+                   use_xy=use_xy, solver=solver, max_steps=max_steps, saturation=saturation,
+                   frame_gains=frame_gains)
     factor, loo = _loo_shrink(images, lights, mask, ps_method, options)
     lambert = rho * jnp.maximum(jnp.cos(f[:, 0]), 0)
     model = dataclasses.replace(model, bound=float(bound) * factor)
     msg += f"; correction scaled by {factor:.3f} (leave-one-light-out)"
-    return _with_fit(model, lambert + factor * (pred - lambert), target, int(steps), bool(ok), t0,
-                     msg, shrink=factor, loo_rmse=loo)
+    shrunk = gain * (lambert + factor * (pred / gain - lambert))
+    return _with_fit(model, shrunk, target, int(steps), bool(ok), t0, msg, shrink=factor,
+                     loo_rmse=loo, **extra)
 
 
 def _loo_shrink(images, lights, mask, ps_method, options):
@@ -484,9 +520,12 @@ def _loo_shrink(images, lights, mask, ps_method, options):
     from ._ps import photometric_stereo
 
     k = images.shape[0]
-    folds = []
+    folds, skipped = [], []
     for j in range(k):
         keep = np.array([i for i in range(k) if i != j])
+        if np.linalg.cond(np.asarray(lights[keep], np.float64)) > 1e4:  # validate_lights' limit
+            skipped.append(j)
+            continue
         ps = photometric_stereo(images[keep], lights[keep], mask=mask, method=ps_method)
         model = fit_brdf(images[keep], ps.normals, ps.albedo, lights[keep], mask=mask, **options)
         full = np.asarray(relight(model, ps.normals, ps.albedo, lights[j]), np.float64)[0]
@@ -495,6 +534,9 @@ def _loo_shrink(images, lights, mask, ps_method, options):
         obs = np.asarray(images[j], np.float64)
         ok = mask & np.isfinite(obs) & (obs < options["saturation"]) & (np.asarray(ps.albedo) > 0)
         folds.append(((obs - lam)[ok], (full - lam)[ok]))
+    if len(folds) < 2:
+        raise ValueError(f"shrink='loo': only {len(folds)} of {k} leave-one-out folds have "
+                         "lights spanning 3-D; it needs at least 2")
     num = sum(float(r @ c) for r, c in folds)
     den = sum(float(c @ c) for _, c in folds)
     pooled = float(np.clip(num / den, 0.0, 1.0)) if den > 0 else 0.0
@@ -503,7 +545,7 @@ def _loo_shrink(images, lights, mask, ps_method, options):
         return np.array([np.mean((r - s * c) ** 2) for r, c in folds])
 
     diff = fold_mse(pooled) - fold_mse(0.0)  # < 0: the correction helps that fold
-    se = float(np.std(diff, ddof=1) / math.sqrt(k))
+    se = float(np.std(diff, ddof=1) / math.sqrt(len(folds)))
     factor = pooled if float(np.mean(diff)) + se < 0 else 0.0
     resid = np.concatenate([r for r, _ in folds])
     corr = np.concatenate([c for _, c in folds])
@@ -511,7 +553,7 @@ def _loo_shrink(images, lights, mask, ps_method, options):
            for name, s in (("lambertian", 0.0), ("full", 1.0), ("shrunk", factor))}
     loo.update(pooled_factor=pooled, mse_diff_mean=float(np.mean(diff)), mse_diff_se=se,
                folds_lambertian=np.sqrt(fold_mse(0.0)).tolist(),
-               folds_full=np.sqrt(fold_mse(1.0)).tolist())
+               folds_full=np.sqrt(fold_mse(1.0)).tolist(), skipped_folds=skipped)
     return factor, loo
 
 

@@ -42,6 +42,7 @@ def relight_capture(
     n_samples: int = 100_000,
     max_steps: int = 30,
     seed: int = 0,
+    check_quality: bool = False,
 ) -> dict:
     """Fit `method` to a capture and write relit PNGs, `relight.gif` and `relight.json` to `out`.
 
@@ -53,6 +54,8 @@ def relight_capture(
     - `circle_zenith_deg`, `circle_frames`: the animation's light circles the view axis at this
       zenith angle in this many frames.
     - `n_samples`, `max_steps`, `seed`: passed to `fit_brdf` (`key=jax.random.key(seed)`).
+    - `check_quality`: drop the frames `jaxps.check_frames` flags (corrupt, badly exposed or
+      inconsistent) before fitting; they are listed under `"dropped_frames"` in the summary.
 
     **Returns:** the summary written to `relight.json` (fit report, files, timings).
     """
@@ -61,7 +64,7 @@ def relight_capture(
 
     from . import fit_brdf, lights_from_angles, photometric_stereo, relight
     from ._outputs import write_json
-    from .acquisition import load_capture
+    from .acquisition import list_frames, load_capture
 
     if len(frames) == 1 and os.path.isdir(frames[0]):
         frames = frames[0]
@@ -71,7 +74,8 @@ def relight_capture(
         raise ValueError(f"circle_zenith_deg must be in [0, 90), got {circle_zenith_deg}")
     times = {}
     t = time.perf_counter()
-    cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask)
+    cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask,
+                       check_quality=check_quality)
     if cap.lights is None:
         raise ValueError("no lights: give --lights FILE or --yale-names")
     images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
@@ -105,8 +109,10 @@ def relight_capture(
     times["relight_and_write"] = time.perf_counter() - t
 
     fit = model.fit._asdict()
+    given = frames if isinstance(frames, (list, tuple)) else list_frames(frames)
+    dropped = [n for n in (os.path.basename(os.fspath(f)) for f in given) if n not in cap.names]
     summary = {
-        "frames": list(cap.names), "method": method, "fit": fit,
+        "frames": list(cap.names), "dropped_frames": dropped, "method": method, "fit": fit,
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
         "mask_pixels": int(fit_mask.sum()), "png_scale": scale,
         "circle_zenith_deg": circle_zenith_deg, "files": files,

@@ -92,6 +92,9 @@ def _add_relight(sub) -> None:
     _add_light_args(p)
     p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
     p.add_argument("--method", default="mlp_ratio", help="BRDF model (jaxps.BRDF_METHODS)")
+    p.add_argument("--check-quality", action="store_true",
+                   help="drop frames flagged by jaxps.check_frames (e.g. interlace-combed) "
+                   "before fitting")
     p.add_argument("--light", action="append", default=[], metavar="AZ,EL",
                    help="a new light, azimuth,elevation in degrees (Yale B); repeatable; write "
                    "--light=-50,0 when the azimuth is negative")
@@ -118,7 +121,10 @@ def _cmd_relight(args) -> int:
         args.frames, args.out, lights=args.lights, yale_names=args.yale_names,
         ambient=args.ambient, mask=args.mask, method=args.method, new_lights=new_lights,
         circle_zenith_deg=args.circle_zenith, circle_frames=args.circle_frames,
-        n_samples=args.samples, max_steps=args.max_steps, seed=args.seed)
+        n_samples=args.samples, max_steps=args.max_steps, seed=args.seed,
+        check_quality=args.check_quality)
+    if s["dropped_frames"]:
+        print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
     fit = s["fit"]
     print(f"relight: {args.method} on {len(s['frames'])} frames, {s['mask_pixels']} pixels: "
           f"training RMSE {fit['rmse']:.4g} (x255 = {s['fit_rmse_gray_8bit']:.2f}), "
