@@ -18,7 +18,7 @@ def data_dir() -> pathlib.Path:
     return pathlib.Path(os.environ.get("JAXPS_DATA", ROOT.parent / "shared" / "data"))
 
 
-def clean_frames(images, angles, label: str = "") -> "np.ndarray":
+def clean_frames(images, angles, label: str = ""):
     """`(K,)` bool: the Yale B frames that pass `jaxps.check_frames` (two of yaleB02's are
     interlace-combed). Only the frames within 60 deg of the view axis (the ones the benchmarks
     use) are checked; the rest count as clean. The report is printed.

@@ -255,7 +255,7 @@ def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--size", type=int, default=1024)
     ap.add_argument("--skip-speed", action="store_true",
-                    help="keep the stored speed section of reflectance.json instead of rerunning it")
+                    help="keep the stored speed section of reflectance.json, do not rerun it")
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     result = {"machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
