@@ -9,8 +9,9 @@ methods' held-out error over five keys; `--part gains`: brdf_gains.json, trainin
 frames corrected by estimated per-frame light intensities). Accuracy: for each subject and
 training set, fit normals and albedo by L2 photometric stereo on the five training frames
 (ambient frame subtracted; frames that `jaxps.check_frames` flags are dropped from training and
-testing, as the pipeline would: yaleB02's +25,0 and +20,-10 are interlace-combed), fit every BRDF method on the same frames, and relight every other
-light within 60 (and 30) degrees of the view axis; RMSE in gray levels (0-255) over the face
+testing, as the pipeline would: yaleB02's +25,0 and +20,-10 are interlace-combed), fit every
+BRDF method on the same frames, and relight every other light within 60 (and 30) degrees of
+the view axis; RMSE in gray levels (0-255) over the face
 mask, raw and gain-compensated (one least-squares gain per held-out image, every method alike).
 Speed: LM training on 100,000 samples and relighting a 700x850 image (compile and run apart),
 with the previous per-sample relight kernel and the pieces of the new one timed in the same run.
@@ -154,66 +155,75 @@ def loo_gray(loo):
     return out
 
 
-def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), methods=None):
-    methods = METHODS if methods is None else {n: METHODS[n] for n in methods}
-    results = []
+def cases(subjects, sets):
+    """Per subject and training set: `(subject, set_name, images, angles, lights, clean, train,
+    test60, near, ps, mask)` with `near` the `(len(test60),)` bool of test lights within 30 deg
+    and `ps` L2 photometric stereo on the training frames."""
     for subject in subjects:
         images, angles, lights, zenith, clean, _ = load_subject(subject)
         for set_name in sets:
             train, test60 = split(angles, zenith, clean, set_name)
             ps = jaxps.photometric_stereo(images[train], lights[train])
-            mask = face_mask(images[train], ps)
-            normals, albedo = ps.normals, ps.albedo
-            obs = images[test60]
             near = np.array([zenith[i] <= 30 for i in test60])
-            row = {"subject": subject, "train_set": set_name,
-                   "train_lights_deg": [angles[i] for i in train],
-                   "flagged_frames_deg": [angles[i] for i in range(len(angles))
-                                          if not clean[i]],
-                   "test_lights_60": len(test60), "test_lights_30": int(near.sum()),
-                   "mask_pixels": int(mask.sum()), "methods": {}}
-            for name, kw in methods.items():
-                if kw.get("shrink") and len(train) < 5:
-                    row["methods"][name] = {"skipped": f"shrink='loo' needs 5 frames, the "
-                                                       f"set has {len(train)} clean ones"}
-                    print(f"{subject} {set_name} {name}: skipped ({len(train)} frames)")
-                    continue
-                t = time.perf_counter()
-                model = jaxps.fit_brdf(images[train], normals, albedo, lights[train], mask=mask,
-                                       key=jax.random.key(0), **kw)
-                fit_s = time.perf_counter() - t
-                t = time.perf_counter()
-                pred = np.asarray(jaxps.relight(model, normals, albedo, lights[test60], mask=mask))
-                relight_s = time.perf_counter() - t
-                flag = np.asarray(jaxps.extrapolation_mask(model, normals, lights[test60]))
-                sel60 = np.broadcast_to(mask, obs.shape)
-                sel30 = sel60 & near[:, None, None]
-                train_pred = np.asarray(jaxps.relight(model, normals, albedo, lights[train]))
-                f = model.fit
-                row["methods"][name] = {
-                    "rmse_60": rmse(pred, obs, sel60), "rmse_30": rmse(pred, obs, sel30),
-                    "rmse_60_gain_oracle": gain_rmse(pred, obs, mask),
-                    "rmse_30_gain_oracle": gain_rmse(pred, obs, mask, near),
-                    "rmse_60_extrapolated": rmse(pred, obs, sel60 & flag),
-                    "rmse_60_inside": rmse(pred, obs, sel60 & ~flag),
-                    "extrapolated_fraction_60": float(flag[sel60].mean()),
-                    "extrapolated_fraction_30": float(flag[sel30].mean()),
-                    "train_mse_gray2": f.mse * 255**2, "train_rmse_gray": f.rmse * 255,
-                    "train_r": f.r, "steps": f.steps, "converged": f.converged,
-                    "n_samples": f.n_samples, "train_images_rmse": rmse(
-                        train_pred, images[train], np.broadcast_to(mask, train_pred.shape)),
-                    "fit_s": fit_s, "relight_s": relight_s,
-                    "shrink": f.shrink, "loo_gray": loo_gray(f.loo_rmse),
-                    "frame_gains": f.frame_gains,
-                }
-                m = row["methods"][name]
-                print(f"{subject} {set_name} {name:18s} rmse60 {m['rmse_60']:6.2f} "
-                      f"rmse30 {m['rmse_30']:6.2f} gain60 {m['rmse_60_gain_oracle']:6.2f} "
-                      f"gain30 {m['rmse_30_gain_oracle']:6.2f} shrink {f.shrink:.3f} "
-                      f"extrap {m['extrapolated_fraction_60']:.3f} "
-                      f"train mse {m['train_mse_gray2']:7.1f} R {f.r:.4f} steps {f.steps} "
-                      f"fit {fit_s:5.1f}s", flush=True)
-            results.append(row)
+            yield (subject, set_name, images, angles, lights, clean, train, test60, near, ps,
+                   face_mask(images[train], ps))
+
+
+def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), methods=None):
+    methods = METHODS if methods is None else {n: METHODS[n] for n in methods}
+    results = []
+    for (subject, set_name, images, angles, lights, clean, train, test60, near, ps,
+         mask) in cases(subjects, sets):
+        normals, albedo = ps.normals, ps.albedo
+        obs = images[test60]
+        row = {"subject": subject, "train_set": set_name,
+               "train_lights_deg": [angles[i] for i in train],
+               "flagged_frames_deg": [angles[i] for i in range(len(angles))
+                                      if not clean[i]],
+               "test_lights_60": len(test60), "test_lights_30": int(near.sum()),
+               "mask_pixels": int(mask.sum()), "methods": {}}
+        for name, kw in methods.items():
+            if kw.get("shrink") and len(train) < 5:
+                row["methods"][name] = {"skipped": f"shrink='loo' needs 5 frames, the "
+                                                   f"set has {len(train)} clean ones"}
+                print(f"{subject} {set_name} {name}: skipped ({len(train)} frames)")
+                continue
+            t = time.perf_counter()
+            model = jaxps.fit_brdf(images[train], normals, albedo, lights[train], mask=mask,
+                                   key=jax.random.key(0), **kw)
+            fit_s = time.perf_counter() - t
+            t = time.perf_counter()
+            pred = np.asarray(jaxps.relight(model, normals, albedo, lights[test60], mask=mask))
+            relight_s = time.perf_counter() - t
+            flag = np.asarray(jaxps.extrapolation_mask(model, normals, lights[test60]))
+            sel60 = np.broadcast_to(mask, obs.shape)
+            sel30 = sel60 & near[:, None, None]
+            train_pred = np.asarray(jaxps.relight(model, normals, albedo, lights[train]))
+            f = model.fit
+            row["methods"][name] = {
+                "rmse_60": rmse(pred, obs, sel60), "rmse_30": rmse(pred, obs, sel30),
+                "rmse_60_gain_oracle": gain_rmse(pred, obs, mask),
+                "rmse_30_gain_oracle": gain_rmse(pred, obs, mask, near),
+                "rmse_60_extrapolated": rmse(pred, obs, sel60 & flag),
+                "rmse_60_inside": rmse(pred, obs, sel60 & ~flag),
+                "extrapolated_fraction_60": float(flag[sel60].mean()),
+                "extrapolated_fraction_30": float(flag[sel30].mean()),
+                "train_mse_gray2": f.mse * 255**2, "train_rmse_gray": f.rmse * 255,
+                "train_r": f.r, "steps": f.steps, "converged": f.converged,
+                "n_samples": f.n_samples, "train_images_rmse": rmse(
+                    train_pred, images[train], np.broadcast_to(mask, train_pred.shape)),
+                "fit_s": fit_s, "relight_s": relight_s,
+                "shrink": f.shrink, "loo_gray": loo_gray(f.loo_rmse),
+                "frame_gains": f.frame_gains,
+            }
+            m = row["methods"][name]
+            print(f"{subject} {set_name} {name:18s} rmse60 {m['rmse_60']:6.2f} "
+                  f"rmse30 {m['rmse_30']:6.2f} gain60 {m['rmse_60_gain_oracle']:6.2f} "
+                  f"gain30 {m['rmse_30_gain_oracle']:6.2f} shrink {f.shrink:.3f} "
+                  f"extrap {m['extrapolated_fraction_60']:.3f} "
+                  f"train mse {m['train_mse_gray2']:7.1f} R {f.r:.4f} steps {f.steps} "
+                  f"fit {fit_s:5.1f}s", flush=True)
+        results.append(row)
     return results
 
 
@@ -442,40 +452,36 @@ def seeds(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), keys=range(5))
     normals and mask as `accuracy`; RMSE within 60 and 30 deg per key, against Lambert."""
     names = ["mlp", "mlp_ratio", "mlp (no frame gains)", "mlp_ratio (no frame gains)"]
     out = []
-    for subject in subjects:
-        images, angles, lights, zenith, clean, _ = load_subject(subject)
-        for set_name in sets:
-            train, test60 = split(angles, zenith, clean, set_name)
-            ps = jaxps.photometric_stereo(images[train], lights[train])
-            mask = face_mask(images[train], ps)
-            obs = images[test60]
-            sel60 = np.broadcast_to(mask, obs.shape)
-            sel30 = sel60 & np.array([zenith[i] <= 30 for i in test60])[:, None, None]
-            lam = jaxps.fit_brdf(images[train], ps.normals, ps.albedo, lights[train], mask=mask,
-                                 method="lambertian")
-            pred = np.asarray(jaxps.relight(lam, ps.normals, ps.albedo, lights[test60], mask=mask))
-            row = {"subject": subject, "train_set": set_name, "keys": list(keys),
-                   "lambertian": {"rmse_60": rmse(pred, obs, sel60),
-                                  "rmse_30": rmse(pred, obs, sel30)}, "methods": {}}
-            for name in names:
-                r60, r30 = [], []
-                for i in keys:
-                    model = jaxps.fit_brdf(images[train], ps.normals, ps.albedo, lights[train],
-                                           mask=mask, key=jax.random.key(i), **METHODS[name])
-                    pred = np.asarray(jaxps.relight(model, ps.normals, ps.albedo,
-                                                    lights[test60], mask=mask))
-                    r60.append(rmse(pred, obs, sel60))
-                    r30.append(rmse(pred, obs, sel30))
-                row["methods"][name] = {
-                    "rmse_60": r60, "rmse_30": r30,
-                    "below_lambert_30": int(np.sum(np.array(r30) < row["lambertian"]["rmse_30"])),
-                    "below_lambert_60": int(np.sum(np.array(r60) < row["lambertian"]["rmse_60"]))}
-                lam30, lam60 = row["lambertian"]["rmse_30"], row["lambertian"]["rmse_60"]
-                print(f"{subject} {set_name} {name:28s} rmse30 {np.mean(r30):6.2f} "
-                      f"[{min(r30):.2f}, {max(r30):.2f}] rmse60 {np.mean(r60):6.2f} "
-                      f"[{min(r60):.2f}, {max(r60):.2f}] (lambert {lam30:.2f} / {lam60:.2f})",
-                      flush=True)
-            out.append(row)
+    for (subject, set_name, images, _, lights, _, train, test60, near, ps,
+         mask) in cases(subjects, sets):
+        obs = images[test60]
+        sel60 = np.broadcast_to(mask, obs.shape)
+        sel30 = sel60 & near[:, None, None]
+        lam = jaxps.fit_brdf(images[train], ps.normals, ps.albedo, lights[train], mask=mask,
+                             method="lambertian")
+        pred = np.asarray(jaxps.relight(lam, ps.normals, ps.albedo, lights[test60], mask=mask))
+        row = {"subject": subject, "train_set": set_name, "keys": list(keys),
+               "lambertian": {"rmse_60": rmse(pred, obs, sel60),
+                              "rmse_30": rmse(pred, obs, sel30)}, "methods": {}}
+        for name in names:
+            r60, r30 = [], []
+            for i in keys:
+                model = jaxps.fit_brdf(images[train], ps.normals, ps.albedo, lights[train],
+                                       mask=mask, key=jax.random.key(i), **METHODS[name])
+                pred = np.asarray(jaxps.relight(model, ps.normals, ps.albedo,
+                                                lights[test60], mask=mask))
+                r60.append(rmse(pred, obs, sel60))
+                r30.append(rmse(pred, obs, sel30))
+            row["methods"][name] = {
+                "rmse_60": r60, "rmse_30": r30,
+                "below_lambert_30": int(np.sum(np.array(r30) < row["lambertian"]["rmse_30"])),
+                "below_lambert_60": int(np.sum(np.array(r60) < row["lambertian"]["rmse_60"]))}
+            lam30, lam60 = row["lambertian"]["rmse_30"], row["lambertian"]["rmse_60"]
+            print(f"{subject} {set_name} {name:28s} rmse30 {np.mean(r30):6.2f} "
+                  f"[{min(r30):.2f}, {max(r30):.2f}] rmse60 {np.mean(r60):6.2f} "
+                  f"[{min(r60):.2f}, {max(r60):.2f}] (lambert {lam30:.2f} / {lam60:.2f})",
+                  flush=True)
+        out.append(row)
     return out
 
 

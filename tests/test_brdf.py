@@ -403,18 +403,23 @@ def test_bad_input(scene):
 # --------------------------------------------------------------------------- command line
 
 
+def yale_cross_args(data, subject):
+    """`jaxps relight` arguments for a Yale B subject's five "cross" frames and its ambient."""
+    folder = data / "yaleb" / subject
+    names = ["A+000E+00", "A+000E+20", "A+000E-20", "A+025E+00", "A-025E+00"]
+    frames = [str(folder / f"{subject}_P00{n}.pgm") for n in names]
+    return ["relight", *frames, "--yale-names", "--ambient",
+            str(folder / f"{subject}_P00_Ambient.pgm"), "--method", "lambertian"]
+
+
 def test_cli_relight_yale(data, tmp_path):
     from PIL import Image
 
     from jaxps.cli import main
 
-    folder = data / "yaleb" / "yaleB01"
-    names = ["A+000E+00", "A+000E+20", "A+000E-20", "A+025E+00", "A-025E+00"]
-    frames = [str(folder / f"yaleB01_P00{n}.pgm") for n in names]
+    args = yale_cross_args(data, "yaleB01")
     out = tmp_path / "relit"
-    rc = main(["relight", *frames, "--yale-names", "--ambient",
-               str(folder / "yaleB01_P00_Ambient.pgm"), "--method", "lambertian",
-               "--light=-35,15", "--circle-frames", "4", "--out", str(out)])
+    rc = main([*args, "--light=-35,15", "--circle-frames", "4", "--out", str(out)])
     assert rc == 0
     with Image.open(out / "relit_A-035E+15.png") as im:
         img = np.asarray(im)
@@ -423,7 +428,8 @@ def test_cli_relight_yale(data, tmp_path):
     assert img[:, 100:].mean() > img[:, :68].mean() + 10
     with Image.open(out / "relight.gif") as gif:
         assert gif.n_frames == 4
-    assert main(["relight", *frames, "--yale-names", "--light", "35", "--out", str(out)]) == 2
+    # no ambient, and an AZ,EL light without its elevation: a clear error, exit code 2
+    assert main([*args[:6], "--yale-names", "--light", "35", "--out", str(out)]) == 2
 
 
 def test_cli_relight_drops_combed_frame(data, tmp_path):
@@ -433,13 +439,9 @@ def test_cli_relight_drops_combed_frame(data, tmp_path):
 
     from jaxps.cli import main
 
-    folder = data / "yaleb" / "yaleB02"
-    names = ["A+000E+00", "A+000E+20", "A+000E-20", "A+025E+00", "A-025E+00"]
-    frames = [str(folder / f"yaleB02_P00{n}.pgm") for n in names]
     out = tmp_path / "relit"
-    rc = main(["relight", *frames, "--yale-names", "--ambient",
-               str(folder / "yaleB02_P00_Ambient.pgm"), "--method", "lambertian",
-               "--circle-frames", "2", "--check-quality", "--out", str(out)])
+    rc = main([*yale_cross_args(data, "yaleB02"), "--circle-frames", "2", "--check-quality",
+               "--out", str(out)])
     assert rc == 0
     summary = json.loads((out / "relight.json").read_text())
     assert summary["dropped_frames"] == ["yaleB02_P00A+025E+00.pgm"]

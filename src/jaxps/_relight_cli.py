@@ -64,7 +64,7 @@ def relight_capture(
 
     from . import fit_brdf, lights_from_angles, photometric_stereo, relight
     from ._outputs import write_json
-    from .acquisition import list_frames, load_capture
+    from .acquisition import load_capture
 
     if len(frames) == 1 and os.path.isdir(frames[0]):
         frames = frames[0]
@@ -109,10 +109,8 @@ def relight_capture(
     times["relight_and_write"] = time.perf_counter() - t
 
     fit = model.fit._asdict()
-    given = frames if isinstance(frames, (list, tuple)) else list_frames(frames)
-    dropped = [n for n in (os.path.basename(os.fspath(f)) for f in given) if n not in cap.names]
     summary = {
-        "frames": list(cap.names), "dropped_frames": dropped, "method": method, "fit": fit,
+        "frames": list(cap.names), "dropped_frames": list(cap.dropped), "method": method, "fit": fit,
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
         "mask_pixels": int(fit_mask.sum()), "png_scale": scale,
         "circle_zenith_deg": circle_zenith_deg, "files": files,

@@ -57,6 +57,7 @@ class Capture(NamedTuple):
     - `names`: the frame file names, in order.
     - `crop`: `(top, left, height, width)` of the face crop in the original frame, or None.
     - `gains`: `(K,)` factors applied by mean equalisation (ones when not equalised).
+    - `dropped`: the names of the frames `check_quality=True` dropped, in order (else empty).
     """
 
     images: np.ndarray
@@ -66,6 +67,7 @@ class Capture(NamedTuple):
     names: tuple[str, ...]
     crop: tuple[int, int, int, int] | None
     gains: np.ndarray
+    dropped: tuple[str, ...] = ()
 
 
 def _natural_key(name: str):
@@ -346,6 +348,7 @@ def load_capture(
             )
         images = subtract_ambient(images, amb)
 
+    given = names
     if check_quality:
         from ._quality import screen_capture
 
@@ -373,8 +376,8 @@ def load_capture(
     if mask_array is None:
         mask_array = (mask_from_intensity(images) if mask == "auto"
                       else np.ones(images.shape[1:3], bool))
-    gains = np.ones(len(paths), np.float32)
+    gains = np.ones(len(images), np.float32)
     if equalize:
         images, gains = equalize_mean(images, mask=mask_array)
     return Capture(np.ascontiguousarray(images, dtype=np.float32), light_array, mask_array,
-                   saturated, names, box, gains)
+                   saturated, names, box, gains, tuple(n for n in given if n not in names))

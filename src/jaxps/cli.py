@@ -30,7 +30,8 @@ def _add_reconstruct(sub) -> None:
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
                    "several folders are several captures (one progress bar, a summary table)")
     p.add_argument("--check-quality", action="store_true",
-                   help="drop frames flagged by jaxps.check_frames (several folders only)")
+                   help="drop frames flagged by jaxps.check_frames (corrupt, badly exposed or "
+                   "inconsistent) before solving")
     _add_light_args(p)
     p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
     p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
@@ -184,8 +185,12 @@ def reconstruct(
     method: str = "l2",
     integration: str = "fc",
     report: bool = False,
+    check_quality: bool = False,
 ) -> dict:
-    """Run the whole pipeline on files and write the outputs to `out`; returns the summary."""
+    """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
+
+    `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
+    `"dropped_frames"` in the summary)."""
     import jax
 
     from . import integrate, photometric_stereo, status_counts
@@ -198,7 +203,7 @@ def reconstruct(
     try:
         cap = stages.run("load frames", load_capture, frames, lights=lights,
                          yale_names=yale_names, ambient=ambient, mask=mask, equalize=equalize,
-                         crop_face=crop_face)
+                         crop_face=crop_face, check_quality=check_quality)
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
 
@@ -230,6 +235,7 @@ def reconstruct(
         stages.close()
     summary = {
         "frames": list(cap.names),
+        "dropped_frames": list(cap.dropped),
         "lights": np.asarray(cap.lights).round(6).tolist(),
         "size": {"frames": len(cap.names), "height": int(cap.images.shape[1]),
                  "width": int(cap.images.shape[2]),
@@ -267,8 +273,10 @@ def _cmd_reconstruct(args) -> int:
         args.frames, args.out, lights=args.lights, yale_names=args.yale_names,
         ambient=args.ambient, mask=args.mask, crop_face=args.crop_face, equalize=args.equalize,
         shadow_threshold=args.shadow_threshold, method=args.method,
-        integration=args.integration, report=args.report,
+        integration=args.integration, report=args.report, check_quality=args.check_quality,
     )
+    if summary["dropped_frames"]:
+        print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))
     counts = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
     size = summary["size"]
     print(f"reconstructed {size['frames']} frames of {size['height']}x{size['width']} "
