@@ -110,7 +110,8 @@ def relight_capture(
 
     fit = model.fit._asdict()
     summary = {
-        "frames": list(cap.names), "dropped_frames": list(cap.dropped), "method": method, "fit": fit,
+        "frames": list(cap.names), "dropped_frames": list(cap.dropped), "method": method,
+        "fit": fit,
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
         "mask_pixels": int(fit_mask.sum()), "png_scale": scale,
         "circle_zenith_deg": circle_zenith_deg, "files": files,
