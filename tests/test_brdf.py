@@ -373,6 +373,28 @@ def test_brdf_in_the_loop_lambertian_matches_l2(scene):
         jaxps.brdf_photometric_stereo(images, s["train"], method="delaunay")
 
 
+def test_brdf_in_the_loop_with_frame_gains_moves_normals_toward_truth(scene):
+    """Oren–Nayar + specular frames whose flashes fired unequally: L2 is ~19 deg off (mean);
+    the loop with `mlp_ratio` re-solves each pixel against I_k / g_k with the fitted frame
+    gains and ends closer to the true normals than L2 and than the same loop without frame
+    gains (measured 18.6 vs 19.1 and 19.0 deg)."""
+    s = scene
+    gains = np.array([1.0, 1.15, 0.9, 0.85, 1.1], np.float32)[:, None, None]
+    images = s["images"] * gains
+
+    def mean_error(normals):
+        return float(np.mean(np.asarray(
+            jaxps.angular_error(normals, s["normals"], mask=s["mask"]))[s["mask"]]))
+
+    l2 = mean_error(jaxps.photometric_stereo(images, s["train"], mask=s["mask"]).normals)
+    kw = dict(mask=s["mask"], method="mlp_ratio", iterations=2, key=jax.random.key(0),
+              n_samples=10**6, max_steps=10)
+    with_gains = mean_error(jaxps.brdf_photometric_stereo(images, s["train"], **kw).normals)
+    without = mean_error(jaxps.brdf_photometric_stereo(images, s["train"], frame_gains=False,
+                                                       **kw).normals)
+    assert with_gains < 0.985 * l2 and with_gains < 0.99 * without, (with_gains, l2, without)
+
+
 # --------------------------------------------------------------------------- bad input
 
 

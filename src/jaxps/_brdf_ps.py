@@ -84,7 +84,8 @@ def brdf_photometric_stereo(
 
     L2 photometric stereo gives the first normals and albedo; then `iterations` times: fit the
     BRDF (`fit_brdf(..., method=method, key=key)`) on the current normals and albedo, and
-    re-solve every pixel's normal and albedo under that BRDF (module docstring).
+    re-solve every pixel's normal and albedo under that BRDF (module docstring), against the
+    frames divided by the fit's frame gains (`BRDFFit.frame_gains`) when it has them.
 
     **Arguments:**
     - `images`: `(K, H, W)` grey, floating, linear; `lights`: `(K, 3)` above the horizon.
@@ -115,7 +116,11 @@ def brdf_photometric_stereo(
         model = fit_brdf(images, normals, albedo, lights_j, mask=ok, method=method, key=key,
                          **fit_options)
         models.append(model)
-        n, rho, conv, rms = _solve_pixels(model, images, lights_j, normals, albedo, xy,
+        # the fit explains frame k as g_k times the model, so re-solve against I_k / g_k
+        frames = images
+        if model.fit.frame_gains is not None:
+            frames = images / jnp.asarray(model.fit.frame_gains, images.dtype)[:, None, None]
+        n, rho, conv, rms = _solve_pixels(model, frames, lights_j, normals, albedo, xy,
                                           max_steps)
         good = jnp.asarray(ok).reshape(-1) & jnp.all(jnp.isfinite(n), axis=-1) & (rho > 0)
         normals = jnp.where(good[:, None], n, normals.reshape(-1, 3)).reshape(h, w, 3)
