@@ -26,9 +26,9 @@ $$ I = \\rho \\max(0, \\cos\\theta_i) + a\\, w(u)\\, B \\tanh g(\\tilde u, x, y)
 
 Training frames are fitted as $I_k = g_k \\cdot (\\ldots)$ with one brightness factor $g_k$ per
 frame ($\\prod_k g_k = 1$; `frame_gains=True`, the default): a flash that fired brighter or
-dimmer is then not learned as reflectance, and `relight` renders at $g = 1$. On Yale B, whose
-flashes vary by about ±10%, this is what turns the correction from worse than Lambert's law to
-better on held-out lights (docs/brdf.md).
+dimmer is then not learned as reflectance, and `relight` renders at $g = 1$. Yale B's flashes
+vary by about ±10%: on subject B01 this turns the correction from worse than Lambert's law to
+better on held-out lights, on B02 it costs 0.13-0.15 gray and stays better (docs/brdf.md).
 
 `lambertian_base=False` gives the paper's plain design ($I = \\bar\\rho\\, g$ or
 $I = \\rho\\, g$, unclamped inputs) for comparison.
