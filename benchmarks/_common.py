@@ -49,20 +49,26 @@ def block(x):
     return jax.block_until_ready(x)
 
 
+def _calls(fn, repeats: int):
+    """`(last output, first call s, [later call s, ...])` of `fn()`, each call waited for."""
+    t0 = time.perf_counter()
+    out = block(fn())
+    first = time.perf_counter() - t0
+    runs = []
+    for _ in range(max(repeats, 1)):
+        t0 = time.perf_counter()
+        out = block(fn())
+        runs.append(time.perf_counter() - t0)
+    return out, first, runs
+
+
 def timed(fn, *args, repeats: int = 3, **kwargs):
     """Time `fn`: the first call (compile + run) apart from the best of `repeats` later calls.
 
     **Returns:** `(result, first_call_s, run_s)`; `compile_s` is about `first_call_s - run_s`.
     """
-    t0 = time.perf_counter()
-    out = block(fn(*args, **kwargs))
-    first = time.perf_counter() - t0
-    best = float("inf")
-    for _ in range(max(repeats, 1)):
-        t0 = time.perf_counter()
-        out = block(fn(*args, **kwargs))
-        best = min(best, time.perf_counter() - t0)
-    return out, first, best
+    out, first, runs = _calls(lambda: fn(*args, **kwargs), repeats)
+    return out, first, min(runs)
 
 
 def time_calls(fn, repeats: int = 3) -> dict:
@@ -70,14 +76,7 @@ def time_calls(fn, repeats: int = 3) -> dict:
 
     **Returns:** `{"first_call_s", "run_s_min", "run_s_median"}`.
     """
-    t0 = time.perf_counter()
-    block(fn())
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(max(repeats, 1)):
-        t0 = time.perf_counter()
-        block(fn())
-        runs.append(time.perf_counter() - t0)
+    _, first, runs = _calls(fn, repeats)
     return {"first_call_s": first, "run_s_min": min(runs),
             "run_s_median": statistics.median(runs)}
 

@@ -25,6 +25,7 @@ import os
 import pathlib
 import platform
 import time
+from typing import NamedTuple
 
 import cv2
 import jax
@@ -155,25 +156,43 @@ def loo_gray(loo):
     return out
 
 
+class Case(NamedTuple):
+    """One subject and training set, as every part of this benchmark evaluates it."""
+
+    subject: str
+    set_name: str
+    images: np.ndarray  # (K, H, W), every frame of the subject
+    angles: list  # (azimuth, elevation) per frame
+    lights: np.ndarray  # (K, 3)
+    clean: np.ndarray  # (K,) bool, passed check_frames
+    ref: object  # L2 PS over the clean lights within 50 deg (the many-light reference)
+    reference_lights: int
+    train: list  # frame indices
+    test60: list  # frame indices, clean lights within 60 deg not trained on
+    near: np.ndarray  # (len(test60),) bool, within 30 deg
+    ps: object  # L2 PS on the training frames
+    mask: np.ndarray  # (H, W) face mask
+
+
 def cases(subjects, sets):
-    """Per subject and training set: `(subject, set_name, images, angles, lights, clean, train,
-    test60, near, ps, mask)` with `near` the `(len(test60),)` bool of test lights within 30 deg
-    and `ps` L2 photometric stereo on the training frames."""
+    """A `Case` per subject and training set (the subject's frames loaded once)."""
     for subject in subjects:
-        images, angles, lights, zenith, clean, _ = load_subject(subject)
+        images, angles, lights, zenith, clean, ref = load_subject(subject)
         for set_name in sets:
             train, test60 = split(angles, zenith, clean, set_name)
             ps = jaxps.photometric_stereo(images[train], lights[train])
-            near = np.array([zenith[i] <= 30 for i in test60])
-            yield (subject, set_name, images, angles, lights, clean, train, test60, near, ps,
-                   face_mask(images[train], ps))
+            yield Case(subject, set_name, images, angles, lights, clean, ref,
+                       int(np.sum((zenith <= 50) & clean)), train, test60,
+                       np.array([zenith[i] <= 30 for i in test60]), ps,
+                       face_mask(images[train], ps))
 
 
 def accuracy(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), methods=None):
     methods = METHODS if methods is None else {n: METHODS[n] for n in methods}
     results = []
-    for (subject, set_name, images, angles, lights, clean, train, test60, near, ps,
-         mask) in cases(subjects, sets):
+    for c in cases(subjects, sets):
+        subject, set_name, images, angles, lights, clean = c[:6]
+        train, test60, near, ps, mask = c.train, c.test60, c.near, c.ps, c.mask
         normals, albedo = ps.normals, ps.albedo
         obs = images[test60]
         row = {"subject": subject, "train_set": set_name,
@@ -380,17 +399,14 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
     held-out RMSE of `lambertian`, `mlp_ratio` and (but for semi_calibrated) `mlp_ratio_loo`
     fitted on the corrected frames (the folds re-run L2 PS on the corrected frames)."""
     out = []
-    for subject in subjects:
-        images, angles, lights, zenith, clean, ref = load_subject(subject)
-        train, test60 = split(angles, zenith, clean, set_name)
-        near = np.array([zenith[i] <= 30 for i in test60])
-        mask = face_mask(images[train], jaxps.photometric_stereo(images[train], lights[train]))
+    for c in cases(subjects, (set_name,)):
+        subject, images, lights, ref = c.subject, c.images, c.lights, c.ref
+        train, test60, near, mask = c.train, c.test60, c.near, c.mask
         obs = images[test60]
         sel60 = np.broadcast_to(mask, obs.shape)
         sel30 = sel60 & near[:, None, None]
         row = {"subject": subject, "train_set": set_name,
-               "reference_lights": int(np.sum((zenith <= 50) & clean)),
-               "estimates": {}}
+               "reference_lights": c.reference_lights, "estimates": {}}
         for how in ("none", "mean", "frontal", "semi_calibrated"):
             e = np.asarray(jaxps.intensity_estimate(images[train], lights[train], mask=mask,
                                                     method=how), np.float64)
@@ -426,12 +442,9 @@ def loop(subject="yaleB01", set_name="cross"):
     light within 50 degrees of the view axis (the many-light reference)."""
     from jaxps._brdf_ps import brdf_photometric_stereo
 
-    images, angles, lights, zenith, clean, ref = load_subject(subject)
-    train, _ = split(angles, zenith, clean, set_name)
-    ps = jaxps.photometric_stereo(images[train], lights[train])
-    mask = face_mask(images[train], ps)
-    out = {"subject": subject, "train_set": set_name,
-           "reference_lights": int(np.sum((zenith <= 50) & clean)),
+    c = next(cases((subject,), (set_name,)))
+    images, lights, ref, train, ps, mask = c.images, c.lights, c.ref, c.train, c.ps, c.mask
+    out = {"subject": subject, "train_set": set_name, "reference_lights": c.reference_lights,
            "l2": jaxps.evaluate.angular_stats(ps.normals, ref.normals, mask=mask)}
     print("l2", out["l2"], flush=True)
     for method in ("lambertian", "mlp_ratio"):
@@ -452,8 +465,9 @@ def seeds(subjects=("yaleB01", "yaleB02"), sets=("cross", "alt"), keys=range(5))
     normals and mask as `accuracy`; RMSE within 60 and 30 deg per key, against Lambert."""
     names = ["mlp", "mlp_ratio", "mlp (no frame gains)", "mlp_ratio (no frame gains)"]
     out = []
-    for (subject, set_name, images, _, lights, _, train, test60, near, ps,
-         mask) in cases(subjects, sets):
+    for c in cases(subjects, sets):
+        subject, set_name, images, lights = c.subject, c.set_name, c.images, c.lights
+        train, test60, near, ps, mask = c.train, c.test60, c.near, c.ps, c.mask
         obs = images[test60]
         sel60 = np.broadcast_to(mask, obs.shape)
         sel30 = sel60 & near[:, None, None]

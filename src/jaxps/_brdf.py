@@ -85,6 +85,7 @@ from ._brdf_features import (
     brdf_features,
     pixel_coordinates,
 )
+from ._lights import MAX_LIGHT_CONDITION
 
 __all__ = [
     "BRDF_METHODS",
@@ -523,7 +524,7 @@ def _loo_shrink(images, lights, mask, ps_method, options):
     folds, skipped = [], []
     for j in range(k):
         keep = np.array([i for i in range(k) if i != j])
-        if np.linalg.cond(np.asarray(lights[keep], np.float64)) > 1e4:  # validate_lights' limit
+        if np.linalg.cond(np.asarray(lights[keep], np.float64)) > MAX_LIGHT_CONDITION:
             skipped.append(j)
             continue
         ps = photometric_stereo(images[keep], lights[keep], mask=mask, method=ps_method)
