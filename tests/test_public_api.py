@@ -1,0 +1,116 @@
+"""The public API does not change when modules move.
+
+`tests/data/public_api.json` is a snapshot of every name in `jaxps.__all__` and in the public
+submodules (kind, signature, NamedTuple fields, enum members, constant values), taken from the
+code before the restructure into one subpackage per stage. Rewrite it only for an intended API
+change: `python tests/test_public_api.py > tests/data/public_api.json`, and say so in the note.
+"""
+
+import enum
+import inspect
+import json
+import pathlib
+import re
+import subprocess
+import sys
+import types
+import typing
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+SNAPSHOT = ROOT / "tests" / "data" / "public_api.json"
+PUBLIC_MODULES = ("acquisition", "evaluate", "synthetic", "stability", "report")
+CLI_NAMES = ("main", "reconstruct", "build_parser")
+
+
+def _annotation(a) -> str | None:
+    if a is inspect.Parameter.empty:
+        return None
+    if isinstance(a, typing.ForwardRef):
+        return a.__forward_arg__
+    return a if isinstance(a, str) else repr(a)
+
+
+def describe(obj) -> dict:
+    """What a user relies on: the kind of object, its call signature, fields and values."""
+    if isinstance(obj, types.ModuleType):
+        return {"kind": "module", "all": sorted(getattr(obj, "__all__", []))}
+    if not inspect.isclass(obj) and not callable(obj):
+        return {"kind": "value", "repr": repr(obj)}
+    d = {"kind": "class" if inspect.isclass(obj) else "function"}
+    try:
+        sig = inspect.signature(obj)
+        d["parameters"] = [
+            [p.name, p.kind.name, _annotation(p.annotation),
+             None if p.default is inspect.Parameter.empty else repr(p.default)]
+            for p in sig.parameters.values()]
+        d["returns"] = _annotation(sig.return_annotation)
+    except (TypeError, ValueError):
+        d["parameters"] = None
+    if hasattr(obj, "_fields"):
+        d["fields"] = list(obj._fields)
+    if inspect.isclass(obj) and issubclass(obj, enum.Enum):
+        d["members"] = {m.name: int(m.value) for m in obj}
+    return d
+
+
+def api() -> dict:
+    import importlib
+
+    import jaxps
+
+    out = {"jaxps": {n: describe(getattr(jaxps, n)) for n in jaxps.__all__}}
+    for name in PUBLIC_MODULES:
+        mod = importlib.import_module(f"jaxps.{name}")
+        out[f"jaxps.{name}"] = {n: describe(getattr(mod, n)) for n in mod.__all__}
+    cli = importlib.import_module("jaxps.cli")
+    out["jaxps.cli"] = {n: describe(getattr(cli, n)) for n in CLI_NAMES}
+    return out
+
+
+def test_public_api_matches_snapshot():
+    want, got = json.loads(SNAPSHOT.read_text()), api()
+    for module, names in want.items():
+        assert module in got, f"{module} is gone"
+        for name, desc in names.items():
+            assert name in got[module], f"{module}.{name} is gone"
+            assert got[module][name] == desc, f"{module}.{name} changed"
+    # New names are fine; each is listed so that a change is visible in review.
+    added = {m: sorted(set(got[m]) - set(want[m])) for m in want}
+    assert all(not v for v in added.values()), f"names added to the snapshot's modules: {added}"
+
+
+# `jaxps.X.Y` in prose and code: not part of a path (`src/jaxps.md`) or of a longer word.
+_DOTTED = re.compile(r"(?<![\w/.-])jaxps(?:\.[A-Za-z_]\w*)+")
+
+
+def _documented_names() -> list[str]:
+    files = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")),
+             *sorted((ROOT / "src").rglob("*.py")), *sorted((ROOT / "examples").glob("*.py")),
+             *sorted((ROOT / "benchmarks").glob("*.py"))]
+    names = set()
+    for f in files:
+        names.update(_DOTTED.findall(f.read_text(encoding="utf-8")))
+    return sorted(n for n in names if not n.endswith((".md", ".py", ".json", ".png")))
+
+
+def test_names_in_readme_docs_and_docstrings_resolve_right_after_import():
+    names = _documented_names()
+    assert "jaxps.acquisition.load_capture" in names and "jaxps.photometric_stereo" in names
+    # A fresh interpreter: `import jaxps` alone must make every documented attribute reachable.
+    code = ("import jaxps, json, sys\n"
+            "bad = []\n"
+            "for name in json.loads(sys.argv[1]):\n"
+            "    obj = jaxps\n"
+            "    for part in name.split('.')[1:]:\n"
+            "        if not hasattr(obj, part):\n"
+            "            bad.append(name); break\n"
+            "        obj = getattr(obj, part)\n"
+            "print(json.dumps(bad))\n")
+    proc = subprocess.run([sys.executable, "-c", code, json.dumps(names)], capture_output=True,
+                          text=True, check=True, timeout=300)
+    assert json.loads(proc.stdout) == [], "documented names that do not resolve"
+
+
+if __name__ == "__main__":
+    json.dump(api(), sys.stdout, indent=1, sort_keys=True)
+    print()
