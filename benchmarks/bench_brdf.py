@@ -288,8 +288,8 @@ def relight_speed(models, normals, albedo, rounds=15):
     import jax.numpy as jnp
     from jax.scipy.ndimage import map_coordinates
 
-    from jaxps._brdf import _mlp, _mlp_elementwise, _predict_one, _support_weight
-    from jaxps._brdf_features import (
+    from jaxps.reflectance._brdf import _mlp, _mlp_elementwise, _predict_one, _support_weight
+    from jaxps.reflectance._features import (
         _angles_elementwise,
         _atan2_nonneg,
         _sample_angles,
@@ -440,7 +440,7 @@ def gains(subjects=("yaleB01", "yaleB02"), set_name="cross"):
 def loop(subject="yaleB01", set_name="cross"):
     """BRDF-in-the-loop PS vs L2 PS, both from the five training frames, against L2 PS over every
     light within 50 degrees of the view axis (the many-light reference)."""
-    from jaxps._brdf_ps import brdf_photometric_stereo
+    from jaxps.reflectance._brdf_ps import brdf_photometric_stereo
 
     c = next(cases((subject,), (set_name,)))
     images, lights, ref, train, ps, mask = c.images, c.lights, c.ref, c.train, c.ps, c.mask

@@ -191,8 +191,8 @@ def _time(fn, repeats=1):
 
 def xla_reduction(k=5, n=1 << 20):
     """Why the solvers unroll sums over the lights: `jnp.sum(x * y, axis=0)` over a short
-    leading axis against `jaxps._reduce.sum0` (K - 1 adds), both jitted, best of 20."""
-    from jaxps._reduce import sum0
+    leading axis against `jaxps.core._reduce.sum0` (K - 1 adds), both jitted, best of 20."""
+    from jaxps.core._reduce import sum0
 
     x = jax.random.uniform(jax.random.key(0), (k, n))
     y = jax.random.uniform(jax.random.key(1), (k, n))

@@ -42,7 +42,7 @@ reconstruct([str(p) for p in paths], str(run), lights=str(frames_dir / "lights.t
             mask=str(frames_dir / "mask.png"), report=True)
 
 # Add the ground truth: error maps appear in the report.
-from jaxps._outputs import write_normal_map  # noqa: E402
+from jaxps.report._writers import write_normal_map  # noqa: E402
 
 write_normal_map(args.out / "truth_normals.png", np.asarray(scene.normals))
 page = write_report(run, truth_normals=args.out / "truth_normals.png")

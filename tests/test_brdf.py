@@ -118,7 +118,7 @@ def test_features_gradients_finite():
 
 
 def test_atan2_polynomial_matches_numpy():
-    from jaxps._brdf_features import _atan2_nonneg
+    from jaxps.reflectance._features import _atan2_nonneg
 
     rng = np.random.default_rng(1)
     y = np.abs(rng.normal(size=2000)) * 10.0 ** rng.uniform(-6, 3, 2000)
@@ -136,7 +136,7 @@ def test_atan2_polynomial_matches_numpy():
 def test_support_weight_matches_scipy_map_coordinates():
     import scipy.ndimage
 
-    from jaxps._brdf import _support_weight
+    from jaxps.reflectance._brdf import _support_weight
 
     rng = np.random.default_rng(2)
     grid = (rng.uniform(size=(6, 4, 5)) > 0.5).astype(np.float32)
@@ -150,7 +150,7 @@ def test_support_weight_matches_scipy_map_coordinates():
 
 
 def relight_numpy(model, normals, albedo, lights):
-    """The model's formula (module docstring of jaxps._brdf) in float64 numpy: features by
+    """The model's formula (docstring of jaxps.reflectance._brdf) in float64 numpy: features by
     `features_vectorised`, the MLP as matrix products, the support by scipy's trilinear
     `map_coordinates`."""
     import scipy.ndimage

@@ -9,7 +9,7 @@ import pytest
 
 import jaxps
 from jaxps import acquisition as acq
-from jaxps._outputs import read_normal_map
+from jaxps.report._writers import read_normal_map
 from jaxps.cli import main
 
 FIVE = ["A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20"]
@@ -118,7 +118,7 @@ def test_reconstruct_psm_cat_colour_with_mask(tmp_path, data):
 
 
 def test_mesh_is_valid_ply(tmp_path):
-    from jaxps._outputs import write_ply
+    from jaxps.report._writers import write_ply
 
     z = np.arange(12, dtype=np.float32).reshape(3, 4)
     mask = np.ones((3, 4), bool)

@@ -7,7 +7,7 @@ from scipy.spatial.transform import Rotation
 
 import jaxps
 from jaxps import evaluate as ev
-from jaxps._icp import _step_point_to_point
+from jaxps.evaluate._icp import _step_point_to_point
 
 
 def _misalign(points, angles_deg, shift, scale=1.0):

@@ -19,6 +19,15 @@ import typing
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SNAPSHOT = ROOT / "tests" / "data" / "public_api.json"
 PUBLIC_MODULES = ("acquisition", "evaluate", "synthetic", "stability", "report")
+# Names added since the snapshot, on purpose: the stage subpackages (issue 14), and the quality,
+# registration and psm loaders under `jaxps.acquisition`, the stage they belong to.
+ADDED = {
+    "jaxps": ["acquisition", "cli", "core", "integration", "lights", "ps", "reflectance",
+              "report", "shading"],
+    "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
+                          "check_file", "check_frames", "drop_flagged", "estimate_shifts",
+                          "load_psm", "register_frames", "shift_frames"],
+}
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 
@@ -74,9 +83,9 @@ def test_public_api_matches_snapshot():
         for name, desc in names.items():
             assert name in got[module], f"{module}.{name} is gone"
             assert got[module][name] == desc, f"{module}.{name} changed"
-    # New names are fine; each is listed so that a change is visible in review.
+    # New names are fine when they are listed in ADDED, so that each is seen in review.
     added = {m: sorted(set(got[m]) - set(want[m])) for m in want}
-    assert all(not v for v in added.values()), f"names added to the snapshot's modules: {added}"
+    assert {m: v for m, v in added.items() if v} == ADDED
 
 
 # `jaxps.X.Y` in prose and code: not part of a path (`src/jaxps.md`) or of a longer word.

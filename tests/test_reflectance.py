@@ -193,7 +193,7 @@ def test_pixel_exact_is_global_minimum():
 def test_solve_pixels_rounds_match_one_round():
     # Per-pixel Rosenbrock-like problems with very different step counts: running them in
     # compacting rounds over small tiles gives the single-round answer and step counts.
-    from jaxps._batched_lm import solve_pixels
+    from jaxps.core._batched_lm import solve_pixels
 
     n = 3000
     a = jnp.linspace(0.5, 3.0, n)[None]

@@ -11,7 +11,7 @@ import pytest
 
 import jaxps
 from jaxps import report
-from jaxps._outputs import write_normal_map
+from jaxps.report._writers import write_normal_map
 from jaxps.cli import main
 
 

@@ -143,7 +143,7 @@ def test_edge_cases_have_status_and_no_nan(method):
 def test_chunked_equals_unchunked(scene8, monkeypatch):
     import jax
 
-    from jaxps import _robust
+    from jaxps.ps import _robust
 
     images = scene8.images[:, :40]
     mask = scene8.mask[:40]

@@ -1,22 +1,47 @@
-"""jaxps: photometric-stereo face capture and reflectance modelling in JAX."""
+"""jaxps: photometric-stereo face capture and reflectance modelling in JAX.
+
+One subpackage per stage, in the order data flows: `acquisition` (frame files to a capture),
+`lights`, `ps` (photometric stereo), `integration` (normals to height), `shading` (Lambert and
+Oren–Nayar models), `reflectance` (model choice, learned BRDF, relighting), `evaluate`, and
+`report` (files and pages for people), with `cli` on top and `core` (status codes, per-pixel
+solvers) underneath. The public names of `core`, `lights`, `ps`, `integration`, `shading` and
+`reflectance` are all here at the top level too; `acquisition`, `evaluate`, `report` and `cli`
+keep theirs under their own name (a few, such as `check_frames`, are also here).
+"""
 
 import importlib.metadata
 
-from . import evaluate, stability, synthetic
-from ._brdf import (
-    BRDF_METHODS,
-    BRDFFit,
-    BRDFModel,
-    extrapolation_mask,
-    fit_brdf,
-    relight,
+from . import (
+    acquisition,
+    cli,
+    core,
+    evaluate,
+    integration,
+    lights,
+    ps,
+    reflectance,
+    report,
+    shading,
+    stability,
+    synthetic,
 )
-from ._brdf_features import FEATURE_NAMES, brdf_features
-from ._brdf_ps import brdf_photometric_stereo
-from ._calibration import ChromeCalibration, lights_from_chrome, load_psm, sphere_from_mask
-from ._batch import photometric_stereo_batch, reconstruct_many, summary_table
-from ._batched_lm import BatchedLM
-from ._integrate import (
+from .acquisition import (
+    FrameCheck,
+    QualityReport,
+    QualityThresholds,
+    Registration,
+    check_file,
+    check_frames,
+    drop_flagged,
+    estimate_shifts,
+    load_psm,
+    register_frames,
+    shift_frames,
+)
+from .cli import reconstruct_many, summary_table
+from .core import BatchedLM, Status, status_counts
+from .evaluate import angular_error
+from .integration import (
     INTEGRATION_METHODS,
     IntegrationResult,
     gradients_from_normals,
@@ -24,35 +49,69 @@ from ._integrate import (
     integrate,
     normals_from_height,
 )
-from ._lights import lights_from_angles, load_lights, parse_yale_name, validate_lights
-from ._l2 import PSResult
-from ._near import NearResult, near_light_field, near_photometric_stereo, surface_points
-from ._lambertian_check import LambertianCheck, lambertian_check, plot_lambertian_check
-from ._model_choice import ModelChoice, compare_models
-from ._oren_nayar import (
+from .lights import (
+    ChromeCalibration,
+    lights_from_angles,
+    lights_from_chrome,
+    load_lights,
+    near_light_field,
+    parse_yale_name,
+    sphere_from_mask,
+    surface_points,
+    validate_lights,
+)
+from .ps import (
+    INTENSITY_METHODS,
+    PS_METHODS,
+    NearResult,
+    PSResult,
+    intensity_estimate,
+    near_photometric_stereo,
+    photometric_stereo,
+    photometric_stereo_batch,
+)
+from .reflectance import (
+    BRDF_METHODS,
+    FEATURE_NAMES,
+    BRDFFit,
+    BRDFModel,
+    ModelChoice,
+    brdf_features,
+    brdf_photometric_stereo,
+    compare_models,
+    extrapolation_mask,
+    fit_brdf,
+    relight,
+)
+from .shading import (
     OREN_NAYAR_FORMS,
+    LambertianCheck,
     RoughnessFit,
     fit_roughness,
+    lambertian_check,
     oren_nayar,
+    plot_lambertian_check,
+    render_lambertian,
     render_oren_nayar,
 )
-from ._ps import PS_METHODS, photometric_stereo
-from ._semicalibrated import INTENSITY_METHODS, intensity_estimate
-from ._quality import (
-    FrameCheck,
-    QualityReport,
-    QualityThresholds,
-    check_file,
-    check_frames,
-    drop_flagged,
-)
-from ._register import Registration, estimate_shifts, register_frames, shift_frames
-from ._render import angular_error, render_lambertian
-from ._status import Status, status_counts
 
 __version__ = importlib.metadata.version("jaxps")
 
 __all__ = [
+    # Subpackages, in pipeline order, and the shared modules.
+    "acquisition",
+    "lights",
+    "ps",
+    "integration",
+    "shading",
+    "reflectance",
+    "evaluate",
+    "report",
+    "cli",
+    "core",
+    "synthetic",
+    "stability",
+    # Names, alphabetically.
     "BRDFFit",
     "BRDFModel",
     "BRDF_METHODS",
@@ -79,10 +138,9 @@ __all__ = [
     "brdf_photometric_stereo",
     "check_file",
     "check_frames",
+    "compare_models",
     "drop_flagged",
     "estimate_shifts",
-    "compare_models",
-    "evaluate",
     "extrapolation_mask",
     "fit_brdf",
     "fit_roughness",
@@ -101,19 +159,17 @@ __all__ = [
     "oren_nayar",
     "parse_yale_name",
     "photometric_stereo",
-    "plot_lambertian_check",
-    "relight",
     "photometric_stereo_batch",
+    "plot_lambertian_check",
     "reconstruct_many",
     "register_frames",
+    "relight",
     "render_lambertian",
     "render_oren_nayar",
-    "sphere_from_mask",
-    "stability",
     "shift_frames",
+    "sphere_from_mask",
     "status_counts",
-    "surface_points",
     "summary_table",
-    "synthetic",
+    "surface_points",
     "validate_lights",
 ]

@@ -17,10 +17,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ._near import near_light_field
-from ._ps import photometric_stereo
-from ._status import Status
+from .core._status import Status
 from .evaluate import angular_stats
+from .lights import near_light_field, surface_points
+from .ps import near_photometric_stereo, photometric_stereo
+from .synthetic import face_like
 
 __all__ = [
     "Corrupted",
@@ -236,8 +237,6 @@ def _scene_for(name, value, h, key):
         pixel = 3.0 * 64 / h
         positions = float(value) * np.asarray(lights, np.float64)
         height = np.asarray(surf.height) * pixel
-        from ._near import surface_points
-
         field, fall = near_light_field(positions, surface_points(height, pixel_size=pixel))
         extra = dict(positions=positions, pixel=pixel, level=float(height[np.asarray(surf.mask)]
                                                                     .mean()))
@@ -252,8 +251,6 @@ def _scene_for(name, value, h, key):
 
 
 def jaxps_synthetic_face(h):
-    from .synthetic import face_like
-
     return face_like(h)
 
 
@@ -280,8 +277,6 @@ def sweep(
     `median_deg`, `mean_deg`, `p95_deg` (over the object), `ok_fraction` (status OK) and
     `nonfinite` (count of NaN/Inf outputs, which must be 0).
     """
-    from ._near import near_photometric_stereo
-
     if name not in SWEEPS:
         raise ValueError(f"name must be one of {tuple(SWEEPS)}, got {name!r}")
     values = SWEEPS[name] if values is None else tuple(values)

@@ -13,8 +13,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from ._lights import lights_from_angles
-from ._render import render_lambertian
+from .lights import lights_from_angles
+from .shading import render_lambertian
 
 __all__ = ["Scene", "face_like", "render_scene", "scanner_lights", "sphere"]
 

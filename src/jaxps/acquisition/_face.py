@@ -1,0 +1,54 @@
+"""Face detection (OpenCV's Lienhart–Maydt Haar cascade) and cropping to the face's box."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+from jaxtyping import Float
+
+__all__ = ["crop", "detect_face"]
+
+
+def detect_face(
+    image: Float[np.ndarray, "H W *C"], *, pad: float = 0.3, min_size: int = 40
+) -> tuple[int, int, int, int] | None:
+    """Find the largest frontal face with OpenCV's Lienhart–Maydt Haar cascade.
+
+    Lienhart & Maydt, "An extended set of Haar-like features for rapid object detection",
+    ICIP 2002 (`haarcascade_frontalface_alt2.xml`, shipped with opencv 4.x). The image is padded
+    by `pad` times its size on every side first: on tightly cropped faces the cascade otherwise
+    misses the face or fires on a cheek.
+
+    **Returns:** `(top, left, height, width)` in `image`'s pixels, clipped to the image, or None.
+    """
+    import cv2
+
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim == 3:
+        img = img.mean(axis=-1)
+    # Cascades were trained on gamma-encoded 8-bit images: stretch to the 99th percentile.
+    top = float(np.percentile(img, 99)) or 1.0
+    grey8 = (np.clip(img / top, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
+    h, w = grey8.shape
+    ph, pw = int(pad * h), int(pad * w)
+    padded = cv2.copyMakeBorder(grey8, ph, ph, pw, pw, cv2.BORDER_CONSTANT, value=0)
+    path = os.path.join(cv2.data.haarcascades, "haarcascade_frontalface_alt2.xml")
+    cascade = cv2.CascadeClassifier(path)
+    if cascade.empty():
+        raise RuntimeError(f"OpenCV Haar cascade missing at {path} (opencv 5.x ships none)")
+    faces = cascade.detectMultiScale(padded, scaleFactor=1.05, minNeighbors=4,
+                                     minSize=(min_size, min_size))
+    if len(faces) == 0:
+        return None
+    x, y, fw, fh = max(faces, key=lambda f: f[2] * f[3])
+    t, l = max(int(y) - ph, 0), max(int(x) - pw, 0)
+    b, r = min(int(y + fh) - ph, h), min(int(x + fw) - pw, w)
+    return t, l, b - t, r - l
+
+
+def crop(array: np.ndarray, box: tuple[int, int, int, int], *, axis: int = 0) -> np.ndarray:
+    """Crop the two image axes starting at `axis` (0 for `(H, W, ...)`, 1 for `(K, H, W, ...)`)."""
+    t, l, h, w = box
+    index = (slice(None),) * axis + (slice(t, t + h), slice(l, l + w))
+    return array[index]

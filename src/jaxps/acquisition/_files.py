@@ -1,0 +1,132 @@
+"""Frames from files: PGM/PNG/TIFF, 8- or 16-bit, grey or colour, to linear float32 in [0, 1].
+
+Intensities follow DESIGN.md: 8-bit / 255, 16-bit / 65535, linear in radiance; gamma-encoded
+sources (8-bit PNG/JPEG by default) are decoded from sRGB with colour-science. OpenCV and
+colour-science are imported on the first read.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Sequence
+
+import numpy as np
+from jaxtyping import Bool, Float
+
+__all__ = ["FRAME_EXTENSIONS", "list_frames", "load_stack", "read_image", "read_mask"]
+
+FRAME_EXTENSIONS = (".pgm", ".ppm", ".png", ".tif", ".tiff")
+_SRGB_EXTENSIONS = (".png", ".jpg", ".jpeg")
+# Files in a frame folder whose names contain these words are not frames.
+_NOT_FRAMES = re.compile(r"mask|ambient", re.IGNORECASE)
+
+PathLike = str | os.PathLike
+
+
+def _natural_key(name: str):
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def list_frames(folder: PathLike) -> list[str]:
+    """Frame files in `folder` (PGM/PPM/PNG/TIFF), in natural order (``x.2`` before ``x.10``).
+
+    Files whose names contain "mask" or "ambient" are skipped: pass those explicitly.
+
+    **Raises:** `FileNotFoundError` if `folder` does not exist or holds no frame file.
+    """
+    folder = os.fspath(folder)
+    if not os.path.isdir(folder):
+        raise FileNotFoundError(f"frame folder not found: {folder}")
+    names = [
+        n for n in os.listdir(folder)
+        if n.lower().endswith(FRAME_EXTENSIONS) and not _NOT_FRAMES.search(n)
+    ]
+    if not names:
+        raise FileNotFoundError(
+            f"no frame files ({', '.join(FRAME_EXTENSIONS)}) in folder {folder}"
+        )
+    return [os.path.join(folder, n) for n in sorted(names, key=_natural_key)]
+
+
+def read_image(path: PathLike, *, linearize: str = "auto") -> Float[np.ndarray, "H W *C"]:
+    """Read one frame as float32 in [0, 1]: `(H, W)` grey or `(H, W, 3)` RGB.
+
+    Uses `cv2.imread(..., IMREAD_UNCHANGED)`, which keeps 16 bits (imageio and
+    `skimage.io.imread` silently return 16-bit PNGs as 8-bit with Pillow 13). An alpha channel is
+    dropped; colour comes back in RGB order.
+
+    **Arguments:**
+    - `path`: the file.
+    - `linearize`: `"auto"` decodes 8-bit PNG/JPEG from sRGB and leaves PGM/TIFF and 16-bit
+      files linear; `"srgb"` always decodes; `"none"` never does.
+
+    **Raises:** `FileNotFoundError` if the file is missing, `ValueError` naming the file if it
+    cannot be decoded or has an unsupported bit depth.
+    """
+    path = os.fspath(path)
+    if linearize not in ("auto", "srgb", "none"):
+        raise ValueError(f"linearize must be 'auto', 'srgb' or 'none', got {linearize!r}")
+    if not os.path.isfile(path):
+        raise FileNotFoundError(f"frame not found: {path}")
+    import cv2
+
+    raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if raw is None:
+        raise ValueError(f"cannot read image {path}: not a decodable PGM/PNG/TIFF file")
+    if raw.ndim == 3:
+        raw = raw[..., :3][..., ::-1] if raw.shape[-1] >= 3 else raw[..., 0]
+    if raw.dtype == np.uint8:
+        img = raw.astype(np.float32) / 255
+    elif raw.dtype == np.uint16:
+        img = raw.astype(np.float32) / 65535
+    elif raw.dtype in (np.float32, np.float64):
+        img = raw.astype(np.float32)
+    else:
+        raise ValueError(f"image {path} has unsupported pixel type {raw.dtype}")
+    if not np.all(np.isfinite(img)):
+        raise ValueError(f"image {path} contains NaN or Inf")
+    decode = linearize == "srgb" or (
+        linearize == "auto" and raw.dtype == np.uint8 and path.lower().endswith(_SRGB_EXTENSIONS)
+    )
+    if decode:
+        import colour  # deferred: importing colour-science takes ~1 s
+
+        img = np.asarray(colour.cctf_decoding(img, function="sRGB"), dtype=np.float32)
+    return np.ascontiguousarray(img)
+
+
+def load_stack(
+    paths: Sequence[PathLike], *, linearize: str = "auto"
+) -> tuple[Float[np.ndarray, "K H W *C"], Bool[np.ndarray, "K H W"]]:
+    """Read frames into a `(K, H, W)` or `(K, H, W, C)` stack, with a saturation map.
+
+    Returns the stack and a `(K, H, W)` bool array of samples at the top code value (any
+    channel). **Raises:** `ValueError` naming the first file whose size or channels differ from
+    the first frame's, or an empty list.
+    """
+    if len(paths) == 0:
+        raise ValueError("no frames given")
+    frames = []
+    for p in paths:
+        img = read_image(p, linearize=linearize)
+        if frames and img.shape != frames[0].shape:
+            raise ValueError(
+                f"frame {os.fspath(p)} has shape {img.shape}, but {os.fspath(paths[0])} has "
+                f"{frames[0].shape}: all frames must be the same size and channels"
+            )
+        frames.append(img)
+    stack = np.stack(frames)
+    saturated = stack >= 1.0
+    if stack.ndim == 4:
+        saturated = saturated.any(axis=-1)
+    return stack, saturated
+
+
+def read_mask(path: PathLike, shape: tuple[int, int] | None = None) -> Bool[np.ndarray, "H W"]:
+    """Read a mask image (non-zero = inside). **Raises:** `ValueError` if `shape` differs."""
+    img = read_image(path, linearize="none")
+    mask = (img.max(axis=-1) if img.ndim == 3 else img) > 0
+    if shape is not None and mask.shape != tuple(shape):
+        raise ValueError(f"mask {os.fspath(path)} has shape {mask.shape}, frames have {shape}")
+    return mask

@@ -1,0 +1,272 @@
+"""`jaxps reconstruct`: frames on disk to normals, albedo, height, mesh and a summary.
+
+`reconstruct` runs the pipeline on one capture's files and writes its outputs; with several
+folders, `reconstruct_many` solves each as a capture (one progress bar, a summary table).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from collections.abc import Sequence
+
+import numpy as np
+
+from ..acquisition import check_frames, drop_flagged, load_capture
+from ..core import Status, status_counts
+from ..integration import integrate
+from ..ps import PSResult, photometric_stereo
+from ..report import lambertian_check_plot, write_report
+from ..report._writers import write_albedo, write_json, write_normal_map, write_ply, write_preview
+from ._args import add_light_args
+
+__all__ = ["add_parser", "reconstruct", "reconstruct_many", "run", "summary_table"]
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "reconstruct",
+        help="frames -> normals, albedo, height, mesh and a JSON summary",
+        description="Reconstruct normals, albedo and a height map from a photometric-stereo "
+        "frame stack, and write normals.png (16-bit, n = v/65535*2-1), albedo.png, height.npy, "
+        "mesh.ply, preview.png and summary.json to --out.",
+    )
+    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
+                   "several folders are several captures (one progress bar, a summary table)")
+    p.add_argument("--check-quality", action="store_true",
+                   help="drop frames flagged by jaxps.check_frames (corrupt, badly exposed or "
+                   "inconsistent) before solving")
+    add_light_args(p)
+    p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
+    p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
+    p.add_argument("--equalize", action="store_true",
+                   help="equalise mean intensity across frames (four-source scanner)")
+    p.add_argument("--shadow-threshold", type=float, default=None,
+                   help="drop samples below this intensity from each pixel's solve")
+    p.add_argument("--method", default="l2", help="photometric-stereo method (jaxps.PS_METHODS)")
+    p.add_argument("--integration", default="fc",
+                   help="integration method (jaxps.INTEGRATION_METHODS)")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--report", action="store_true",
+                   help="also write lambertian_check.png and report.html (see 'jaxps report')")
+    p.set_defaults(func=run)
+
+
+class _Stages:
+    """A progress bar over named stages, with wall-clock time per stage."""
+
+    def __init__(self, names: list[str]):
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=len(names), unit="stage", file=sys.stderr, leave=False,
+                        bar_format="{desc:<28}{bar:20}| {n_fmt}/{total_fmt} [{elapsed}]")
+        self.times: dict[str, float] = {}
+
+    def run(self, name: str, fn, *args, **kwargs):
+        self.bar.set_description(name)
+        t0 = time.perf_counter()
+        out = fn(*args, **kwargs)
+        self.times[name] = round(time.perf_counter() - t0, 4)
+        self.bar.update()
+        return out
+
+    def close(self):
+        self.bar.close()
+
+
+def reconstruct(
+    frames,
+    out: str,
+    *,
+    lights=None,
+    yale_names: bool = False,
+    ambient=None,
+    mask=None,
+    crop_face: bool = False,
+    equalize: bool = False,
+    shadow_threshold: float | None = None,
+    method: str = "l2",
+    integration: str = "fc",
+    report: bool = False,
+    check_quality: bool = False,
+) -> dict:
+    """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
+
+    `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
+    `"dropped_frames"` in the summary)."""
+    import jax
+
+    if len(frames) == 1 and os.path.isdir(frames[0]):
+        frames = frames[0]
+    stages = _Stages(["load", "solve", "integrate", "write"])
+    try:
+        cap = stages.run("load frames", load_capture, frames, lights=lights,
+                         yale_names=yale_names, ambient=ambient, mask=mask, equalize=equalize,
+                         crop_face=crop_face, check_quality=check_quality)
+        if cap.lights is None:
+            raise ValueError("no lights: give --lights FILE or --yale-names")
+
+        def solve():
+            res = photometric_stereo(cap.images, cap.lights, mask=cap.mask, method=method,
+                                     sample_mask=~cap.saturated,
+                                     shadow_threshold=shadow_threshold)
+            return jax.block_until_ready(res)
+
+        res = stages.run("photometric stereo", solve)
+        ok = np.asarray(res.status == 0)
+        height = stages.run("integrate", lambda: np.asarray(
+            integrate(res.normals, mask=ok if ok.any() else None, method=integration)))
+
+        def write():
+            os.makedirs(out, exist_ok=True)
+            normals, albedo = np.asarray(res.normals), np.asarray(res.albedo)
+            write_normal_map(os.path.join(out, "normals.png"), normals)
+            scale = write_albedo(os.path.join(out, "albedo.png"), albedo)
+            np.save(os.path.join(out, "height.npy"), height)
+            np.save(os.path.join(out, "status.npy"), np.asarray(res.status))
+            faces = write_ply(os.path.join(out, "mesh.ply"), height, ok)
+            write_preview(os.path.join(out, "preview.png"), normals, albedo, height, ok,
+                          title=f"{cap.names[0]} ... ({len(cap.names)} frames)")
+            return scale, faces
+
+        scale, faces = stages.run("write outputs", write)
+    finally:
+        stages.close()
+    summary = {
+        "frames": list(cap.names),
+        "dropped_frames": list(cap.dropped),
+        "lights": np.asarray(cap.lights).round(6).tolist(),
+        "size": {"frames": len(cap.names), "height": int(cap.images.shape[1]),
+                 "width": int(cap.images.shape[2]),
+                 "channels": int(cap.images.shape[3]) if cap.images.ndim == 4 else 1},
+        "crop": cap.crop,
+        "gains": cap.gains.round(6).tolist(),
+        "method": method,
+        "integration": integration,
+        "mask_pixels": int(cap.mask.sum()),
+        "status_counts": status_counts(res.status),
+        "saturated_samples": int(cap.saturated.sum()),
+        "albedo_png_scale": scale,
+        "mesh_faces": faces,
+        "timings_s": stages.times,
+        "note": "timings include JIT compilation on the first call",
+    }
+    if report:
+        summary["lambertian_check"] = lambertian_check_plot(
+            cap.images, res.normals, res.albedo, cap.lights, mask=ok,
+            path=os.path.join(out, "lambertian_check.png"))
+    write_json(os.path.join(out, "summary.json"), summary)
+    if report:
+        write_report(out)
+    return summary
+
+
+def run(args) -> int:
+    if len(args.frames) > 1 and all(os.path.isdir(f) for f in args.frames):
+        return _run_many(args)
+    summary = reconstruct(
+        args.frames, args.out, lights=args.lights, yale_names=args.yale_names,
+        ambient=args.ambient, mask=args.mask, crop_face=args.crop_face, equalize=args.equalize,
+        shadow_threshold=args.shadow_threshold, method=args.method,
+        integration=args.integration, report=args.report, check_quality=args.check_quality,
+    )
+    if summary["dropped_frames"]:
+        print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))
+    counts = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
+    size = summary["size"]
+    print(f"reconstructed {size['frames']} frames of {size['height']}x{size['width']} "
+          f"-> {args.out}/ (pixels: {counts})")
+    print("timings: " + ", ".join(f"{k} {v:.3f} s" for k, v in summary["timings_s"].items()))
+    return 0
+
+
+def summary_table(rows: Sequence[dict]) -> str:
+    """A plain-text table of per-capture summaries (one row per capture, columns from the keys
+    of the first row)."""
+    if not rows:
+        return "(no captures)"
+    cols = list(rows[0])
+    cells = [[str(c) for c in cols]] + [[_fmt(r.get(c, "")) for c in cols] for r in rows]
+    widths = [max(len(row[i]) for row in cells) for i in range(len(cols))]
+    lines = ["  ".join(v.ljust(wd) for v, wd in zip(row, widths)).rstrip() for row in cells]
+    lines.insert(1, "  ".join("-" * wd for wd in widths))
+    return "\n".join(lines)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3g}"
+    return str(v)
+
+
+def reconstruct_many(
+    folders: Sequence[str | os.PathLike],
+    *,
+    method: str = "l2",
+    check_quality: bool = True,
+    progress: bool = True,
+    **load_options,
+) -> tuple[list[PSResult | None], list[dict]]:
+    """Load, check and solve many capture folders, with one progress bar over the captures.
+
+    Each folder is loaded with `jaxps.acquisition.load_capture(folder, **load_options)`; with
+    `check_quality`, flagged frames are dropped (`drop_flagged`) and named in the summary. A
+    capture that cannot be loaded or keeps fewer than 3 frames is reported (`error` column) and
+    its result is None; nothing is skipped silently.
+
+    **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
+    `summary_table(rows)` formats the rows.
+    """
+    from tqdm.auto import tqdm
+
+    results, rows = [], []
+    bar = tqdm(list(folders), desc="captures", unit="capture", disable=not progress)
+    for folder in bar:
+        row = {"capture": os.path.basename(os.path.normpath(os.fspath(folder))), "frames": 0,
+               "dropped": "", "ok_pixels": 0, "ok_%": 0.0, "error": ""}
+        res = None
+        try:
+            cap = load_capture(folder, **load_options)
+            if cap.lights is None:
+                raise ValueError("no lights (give lights= or yale_names=True)")
+            images, lights, sample_mask = cap.images, cap.lights, ~cap.saturated
+            row["frames"] = len(cap.names)
+            if check_quality:
+                report = check_frames(images, names=list(cap.names), mask=cap.mask)
+                images, lights, kept = drop_flagged(images, lights, report)
+                sample_mask = sample_mask[kept]
+                row["dropped"] = ", ".join(f"{f.name} ({f.reasons[0]})" for f in report.flagged)
+            res = photometric_stereo(images, lights, mask=cap.mask, sample_mask=sample_mask,
+                                     method=method)
+            ok = int(np.sum(np.asarray(res.status) == Status.OK))
+            row["ok_pixels"] = ok
+            row["ok_%"] = 100.0 * ok / max(int(cap.mask.sum()), 1)
+        except (ValueError, FileNotFoundError) as err:
+            row["error"] = str(err).splitlines()[0]
+        results.append(res)
+        rows.append(row)
+    bar.close()
+    return results, rows
+
+
+def _run_many(args) -> int:
+    """`jaxps reconstruct DIR1 DIR2 ... --out OUT`: every folder is one capture; writes
+    `OUT/<folder>/normals.png`, `albedo.png`, `status.npy`, prints a summary table and writes
+    `OUT/summary.json`. Returns 1 if any capture failed (named in the table), else 0."""
+    load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
+                        mask=args.mask, crop_face=args.crop_face, equalize=args.equalize)
+    results, rows = reconstruct_many(args.frames, method=args.method,
+                                     check_quality=args.check_quality, **load_options)
+    os.makedirs(args.out, exist_ok=True)
+    for folder, res, row in zip(args.frames, results, rows):
+        if res is None:
+            continue
+        sub = os.path.join(args.out, row["capture"])
+        os.makedirs(sub, exist_ok=True)
+        write_normal_map(os.path.join(sub, "normals.png"), np.asarray(res.normals))
+        write_albedo(os.path.join(sub, "albedo.png"), np.asarray(res.albedo))
+        np.save(os.path.join(sub, "status.npy"), np.asarray(res.status))
+    write_json(os.path.join(args.out, "summary.json"), {"captures": rows})
+    print(summary_table(rows))
+    return 1 if any(r["error"] for r in rows) else 0

@@ -1,0 +1,41 @@
+"""Small dense solves written for `vmap` over pixels on XLA-CPU."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jaxtyping import Array
+
+__all__ = ["REL_DET_MIN", "solve3"]
+
+# det(A) / (trace(A)/3)^3 below this marks the usable lights as not spanning 3-D
+# (roughly a light-matrix condition number above 1e3).
+REL_DET_MIN = 1e-6
+
+
+def solve3(a, r) -> tuple[Array, Array]:
+    """Solve the symmetric 3x3 system `a x = r` by cofactors.
+
+    `a` is indexable as `a[p][q]` (a `(3, 3)` array or nested lists of per-pixel scalars) and
+    `r` as `r[p]` (a `(3, ...)` array or a list of three arrays). Returns the `(3, ...)`
+    solution and det(a) / (trace(a)/3)^3, a scale-free conditioning measure (0 when singular).
+
+    Written with scalar products only: under `vmap`, a batched matrix product or a reduction
+    over a small axis becomes a slow batched op on CPU, while these fuse into one elementwise
+    loop over pixels.
+    """
+    c00 = a[1][1] * a[2][2] - a[1][2] * a[2][1]
+    c01 = a[1][2] * a[2][0] - a[1][0] * a[2][2]
+    c02 = a[1][0] * a[2][1] - a[1][1] * a[2][0]
+    c11 = a[0][0] * a[2][2] - a[0][2] * a[2][0]
+    c12 = a[0][1] * a[2][0] - a[0][0] * a[2][1]
+    c22 = a[0][0] * a[1][1] - a[0][1] * a[1][0]
+    det = a[0][0] * c00 + a[0][1] * c01 + a[0][2] * c02
+    scale = (a[0][0] + a[1][1] + a[2][2]) / 3
+    rel_det = det / jnp.maximum(scale**3, jnp.finfo(det.dtype).tiny)
+    inv_det = 1 / jnp.where(det != 0, det, 1)
+    x = [
+        (c00 * r[0] + c01 * r[1] + c02 * r[2]) * inv_det,
+        (c01 * r[0] + c11 * r[1] + c12 * r[2]) * inv_det,
+        (c02 * r[0] + c12 * r[1] + c22 * r[2]) * inv_det,
+    ]
+    return jnp.stack(x), rel_det

@@ -1,0 +1,174 @@
+"""Error maps of a reconstruction against a ground-truth scan, after ICP alignment.
+
+The face-scanner papers judge a reconstruction against a commercial 3-D scan: the two are
+aligned with ICP, then the RMS height error, the $\\ell_2$-norm error of the normals and the
+angular error are reported and shown as colour maps (e.g. Hansen, Atkinson, Smith & Smith, "3D
+face reconstructions from photometric stereo using near infrared and visible light", CVIU
+114(8), 2010; Zafeiriou et al., "Face recognition and verification using photometric stereo:
+the Photoface database and a comprehensive evaluation", IEEE TIFS 8(1), 2013).
+
+Here the reconstruction's height map becomes a point cloud (`points_from_height`), is aligned to
+the scan's point cloud (`icp`, with a global scale by default, since a height map in pixel units
+meets a scan in millimetres), and each reconstructed pixel is compared with its nearest scan
+point:
+
+- height error: the signed distance from the aligned point to the scan's tangent plane at that
+  scan point (positive in front of the scan), in the scan's unit;
+- angular error: the angle between the reconstructed normal turned by the ICP rotation and the
+  scan's normal, in degrees;
+- $\\ell_2$-norm error: $\\lVert R n - n_{gt} \\rVert_2$ of the same pair (0 to 2; about the angle
+  in radians for small errors).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
+
+from ._icp import ICPResult, estimate_normals, icp, points_from_height
+
+__all__ = ["ScanComparison", "compare_to_scan", "l2_error"]
+
+
+class ScanComparison(NamedTuple):
+    """Per-pixel errors of a reconstruction against a scan, on the reconstruction's pixel grid.
+
+    - `height_error`: `(H, W)` signed distance to the scan's surface (scan units), 0 off `mask`.
+    - `angular_error`: `(H, W)` degrees, 0 off `mask` (all 0 when no normals were given).
+    - `l2_error`: `(H, W)` $\\lVert R n - n_{gt} \\rVert_2$, 0 off `mask`.
+    - `mask`: `(H, W)` bool, the pixels compared (ICP inliers inside the input mask).
+    - `rms_height`: RMS of `height_error` over `mask`; `mean_abs_height`: its mean |.|.
+    - `median_angular`, `mean_angular`: degrees over `mask` (NaN when no normals were given).
+    - `mean_l2`: mean $\\ell_2$-norm error over `mask` (NaN when no normals were given).
+    - `icp`: the `ICPResult` of the alignment.
+    """
+
+    height_error: Float[np.ndarray, "H W"]
+    angular_error: Float[np.ndarray, "H W"]
+    l2_error: Float[np.ndarray, "H W"]
+    mask: Bool[np.ndarray, "H W"]
+    rms_height: float
+    mean_abs_height: float
+    median_angular: float
+    mean_angular: float
+    mean_l2: float
+    icp: ICPResult
+
+
+def l2_error(
+    normals_a: Float[ArrayLike, "H W 3"],
+    normals_b: Float[ArrayLike, "H W 3"],
+    *,
+    mask: Bool[ArrayLike, "H W"] | None = None,
+) -> Float[np.ndarray, "H W"]:
+    """Per-pixel $\\ell_2$ norm of the difference of two unit-normal maps (0 outside `mask`).
+
+    $\\lVert a - b \\rVert_2 = 2 \\sin(\\theta / 2)$ for unit vectors at angle $\\theta$.
+
+    **Returns:** `(H, W)` in the floating dtype of `normals_a`.
+    """
+    a = np.asarray(normals_a)
+    b = np.asarray(normals_b)
+    if a.shape != b.shape or a.ndim != 3 or a.shape[-1] != 3:
+        raise ValueError(
+            f"normals_a and normals_b must both be (H, W, 3), got {a.shape} and {b.shape}")
+    dtype = a.dtype if np.issubdtype(a.dtype, np.floating) else np.float32
+    err = np.linalg.norm(a.astype(np.float64) - b.astype(np.float64), axis=-1)
+    if mask is not None:
+        if np.shape(mask) != a.shape[:2]:
+            raise ValueError(f"mask must have shape {a.shape[:2]}, got {np.shape(mask)}")
+        err = np.where(np.asarray(mask, bool), err, 0)
+    return err.astype(dtype)
+
+
+def compare_to_scan(
+    height: Float[ArrayLike, "H W"],
+    target: Float[ArrayLike, "M 3"],
+    *,
+    mask: Bool[ArrayLike, "H W"] | None = None,
+    normals: Float[ArrayLike, "H W 3"] | None = None,
+    target_normals: Float[ArrayLike, "M 3"] | None = None,
+    pixel_size: float = 1.0,
+    scale: bool = True,
+    **icp_options,
+) -> ScanComparison:
+    """Align a reconstructed height map to a scan with ICP and map the errors per pixel.
+
+    **Arguments:**
+    - `height`: `(H, W)` reconstructed height, toward the viewer (e.g. `jaxps.integrate`).
+    - `target`: `(M, 3)` scan points in the camera frame (e.g. `points_from_depth`).
+    - `mask`: `(H, W)` bool, reconstructed pixels to compare (default: all finite).
+    - `normals`: `(H, W, 3)` reconstructed normals for the angular and $\\ell_2$ maps (default:
+      none, those maps stay 0).
+    - `target_normals`: `(M, 3)` scan normals (default: `estimate_normals(target)`).
+    - `pixel_size`: the reconstruction's pixel size in its height unit.
+    - `scale`: fit a global scale in ICP (default True).
+    - `**icp_options`: passed to `icp` (default here: `init="centroid"`).
+
+    **Returns:** a `ScanComparison` on the reconstruction's `(H, W)` grid.
+    """
+    z = np.asarray(height)
+    if z.ndim != 2:
+        raise ValueError(f"height must be (H, W), got shape {z.shape}")
+    dtype = z.dtype if np.issubdtype(z.dtype, np.floating) else np.float32
+    src, pix = points_from_height(z, mask=mask, pixel_size=pixel_size)
+    if src.shape[0] < 3:
+        raise ValueError("mask leaves fewer than 3 reconstructed pixels to compare")
+    tgt = np.asarray(target)
+    if target_normals is None:
+        tn = estimate_normals(tgt)
+    else:
+        tn = np.asarray(target_normals)
+        if tn.shape != tgt.shape:
+            raise ValueError(f"target_normals must have the shape of target {tgt.shape}, "
+                             f"got {tn.shape}")
+    icp_options.setdefault("init", "centroid")
+    res = icp(src, tgt, scale=scale, target_normals=tn, **icp_options)
+
+    from scipy.spatial import cKDTree
+
+    _, idx = cKDTree(tgt).query(res.aligned.astype(np.float64))
+    tn64 = tn.astype(np.float64)
+    tn64 /= np.maximum(np.linalg.norm(tn64, axis=-1, keepdims=True), 1e-12)
+    signed = np.sum((res.aligned.astype(np.float64) - tgt[idx]) * tn64[idx], axis=-1)
+
+    h, w = z.shape
+    sel = np.zeros((h, w), bool)
+    r, c = pix[res.inliers, 0], pix[res.inliers, 1]
+    sel[r, c] = True
+    height_err = np.zeros((h, w))
+    height_err[pix[:, 0], pix[:, 1]] = signed
+    height_err[~sel] = 0
+    ang = np.zeros((h, w))
+    l2 = np.zeros((h, w))
+    med = mean = mean_l2 = float("nan")
+    if normals is not None:
+        n = np.asarray(normals, np.float64)
+        if n.shape != (h, w, 3):
+            raise ValueError(f"normals must have shape {(h, w, 3)}, got {n.shape}")
+        rot = np.asarray(res.rotation, np.float64)
+        nr = n[pix[:, 0], pix[:, 1]] @ rot.T
+        nr /= np.maximum(np.linalg.norm(nr, axis=-1, keepdims=True), 1e-12)
+        ref = tn64[idx]
+        cross = np.linalg.norm(np.cross(nr, ref), axis=-1)
+        ang[pix[:, 0], pix[:, 1]] = np.degrees(np.arctan2(cross, np.sum(nr * ref, axis=-1)))
+        l2[pix[:, 0], pix[:, 1]] = np.linalg.norm(nr - ref, axis=-1)
+        ang[~sel] = 0
+        l2[~sel] = 0
+        med, mean, mean_l2 = (float(np.median(ang[sel])), float(np.mean(ang[sel])),
+                              float(np.mean(l2[sel])))
+    e = height_err[sel]
+    return ScanComparison(
+        height_error=height_err.astype(dtype),
+        angular_error=ang.astype(dtype),
+        l2_error=l2.astype(dtype),
+        mask=sel,
+        rms_height=float(np.sqrt(np.mean(e**2))),
+        mean_abs_height=float(np.mean(np.abs(e))),
+        median_angular=med,
+        mean_angular=mean,
+        mean_l2=mean_l2,
+        icp=res,
+    )

@@ -1,0 +1,98 @@
+"""Near point lights: per-pixel light directions and fall-off over a surface.
+
+A scanner's flashes sit about a metre from the face, so the direction and the irradiance of each
+light change across the face: with light $k$ at position $P_k$ and the surface point $X$ of a
+pixel, $l_k(X) = (P_k - X)/|P_k - X|$ and the irradiance falls off as
+$a_k(X) = (|P_k| / |P_k - X|)^2$ (1 at the origin: the image centre at depth 0), optionally times
+an LED's $\\cos^{\\mu}$ lobe around its axis (towards the origin). Both depend on the depth of
+$X$, which PS itself estimates: `jaxps.near_photometric_stereo` alternates the two.
+
+Frame: DESIGN.md camera frame (x right, y up, z toward the viewer), orthographic; the pixel at
+row r, column c sits at $x = (c - (W-1)/2)\\,s$, $y = ((H-1)/2 - r)\\,s$ with $s$ = `pixel_size`,
+and $z$ is the height. Positions and heights share the unit of `pixel_size`.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+__all__ = ["near_light_field", "surface_points"]
+
+
+def surface_points(height: Float[ArrayLike, "H W"], *, pixel_size: float = 1.0
+                   ) -> Float[Array, "H W 3"]:
+    """Camera-frame points `(H, W, 3)` of a height map (orthographic, origin at the image centre).
+
+    **Arguments:**
+    - `height`: `(H, W)` z toward the viewer, in the unit of `pixel_size`.
+    - `pixel_size`: size of one pixel in that unit.
+
+    **Returns:** `(H, W, 3)` points $(x, y, z)$ in the dtype of `height`.
+    """
+    height = jnp.asarray(height)
+    if height.ndim != 2:
+        raise ValueError(f"height must be (H, W), got shape {height.shape}")
+    if not jnp.issubdtype(height.dtype, jnp.floating):
+        height = height.astype(jnp.float32)
+    if not (np.isfinite(pixel_size) and pixel_size > 0):
+        raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
+    h, w = height.shape
+    x = (jnp.arange(w, dtype=height.dtype) - (w - 1) / 2) * pixel_size
+    y = ((h - 1) / 2 - jnp.arange(h, dtype=height.dtype)) * pixel_size
+    xx, yy = jnp.meshgrid(x, y)
+    return jnp.stack([xx, yy, height], axis=-1)
+
+
+@jax.jit
+def _field(positions, points, mu):
+    d = positions[:, None, None, :] - points[None]  # (K, H, W, 3)
+    dist = jnp.linalg.norm(d, axis=-1)
+    safe = jnp.maximum(dist, jnp.finfo(points.dtype).tiny)
+    lights = d / safe[..., None]
+    r0 = jnp.linalg.norm(positions, axis=-1)[:, None, None]
+    falloff = (r0 / safe) ** 2
+    # LED lobe: cos(angle between -l and the light's axis, which points at the origin)^mu.
+    axis = -positions / jnp.maximum(r0[:, 0], jnp.finfo(points.dtype).tiny)
+    cos_axis = jnp.maximum(jnp.einsum("khwc,kc->khw", -lights, axis), 0)
+    falloff = falloff * jnp.where(mu > 0, cos_axis ** mu, 1)
+    return lights, falloff
+
+
+def near_light_field(
+    positions: Float[ArrayLike, "K 3"],
+    points: Float[ArrayLike, "H W 3"],
+    *,
+    mu: float = 0.0,
+) -> tuple[Float[Array, "K H W 3"], Float[Array, "K H W"]]:
+    """Per-pixel unit light directions and relative irradiance of near point lights.
+
+    $l_k = (P_k - X)/|P_k - X|$, $a_k = (|P_k|/|P_k - X|)^2 \\cos^{\\mu}\\theta_k$ with
+    $\\theta_k$ the angle off the light's axis (pointing at the origin); $a_k = 1$ at the origin
+    for an isotropic light.
+
+    **Arguments:**
+    - `positions`: `(K, 3)` light positions in the camera frame (e.g. 1.2 m from the face).
+    - `points`: `(H, W, 3)` surface points (`surface_points(height, pixel_size=...)`).
+    - `mu`: LED anisotropy exponent (0 = isotropic point light).
+
+    **Returns:** `lights` `(K, H, W, 3)` unit vectors and `falloff` `(K, H, W)`, in the dtype of
+    `points`.
+    """
+    points = jnp.asarray(points)
+    if not jnp.issubdtype(points.dtype, jnp.floating):
+        points = points.astype(jnp.float32)
+    positions = jnp.asarray(positions, points.dtype)
+    if positions.ndim != 2 or positions.shape[-1] != 3:
+        raise ValueError(f"positions must be (K, 3), got shape {positions.shape}")
+    if points.ndim != 3 or points.shape[-1] != 3:
+        raise ValueError(f"points must be (H, W, 3), got shape {points.shape}")
+    if not bool(jnp.all(jnp.isfinite(positions))):
+        raise ValueError("positions contain NaN or Inf")
+    if bool(jnp.any(jnp.linalg.norm(positions, axis=-1) == 0)):
+        raise ValueError("positions must not be at the origin (the image centre at depth 0)")
+    if not (np.isfinite(mu) and mu >= 0):
+        raise ValueError(f"mu must be a finite non-negative number, got {mu}")
+    return _field(positions, points, jnp.asarray(mu, points.dtype))

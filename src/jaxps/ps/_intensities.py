@@ -1,0 +1,81 @@
+"""Per-frame light intensities of a capture, by one of several estimates.
+
+A flash fires a little brighter or dimmer each time; dividing frame $k$ by its intensity $e_k$
+equalises a stack. `"mean"` is the face scanners' equalisation, `"semi_calibrated"` the joint
+fit of `ps_semi_calibrated` (Cho et al., TPAMI 2018), and:
+
+**Frontal estimate** (`intensity_estimate(..., method="frontal")`): with no shadows, the mean of
+frame $k$ over the face is $\\bar i_k = e_k\\, l_k \\cdot \\bar b$; taking the mean face normal
+$\\bar b$ along the view axis (a face looking at the camera) gives
+$e_k \\propto \\bar i_k / l_{k,z}$.
+This is the face scanners' mean-intensity equalisation corrected for each light's obliquity.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from ._photometric_stereo import photometric_stereo
+
+__all__ = ["INTENSITY_METHODS", "intensity_estimate"]
+
+INTENSITY_METHODS = ("none", "mean", "frontal", "semi_calibrated")
+
+
+def intensity_estimate(
+    images: Float[ArrayLike, "K H W *C"],
+    lights: Float[ArrayLike, "K 3"],
+    *,
+    mask: Bool[ArrayLike, "H W"] | None = None,
+    method: str = "semi_calibrated",
+    **options,
+) -> Float[Array, " K"]:
+    """Per-frame light intensities, geometric mean 1, by one of `INTENSITY_METHODS`.
+
+    - `"none"`: all ones.
+    - `"mean"`: the face scanners' equalisation, $e_k \\propto$ mean of frame $k$ over `mask`.
+    - `"frontal"`: mean equalisation divided by each light's $l_z$ (mean face normal along the
+      view axis; see the module docstring).
+    - `"semi_calibrated"`: the joint least-squares fit of `ps_semi_calibrated` (options passed on).
+
+    Divide frame $k$ by $e_k$ to equalise a stack.
+
+    **Arguments:**
+    - `images`: `(K, H, W)` or `(K, H, W, C)` floating point in [0, 1].
+    - `lights`: `(K, 3)` light directions.
+    - `mask`: `(H, W)` bool region to use (default: all pixels).
+
+    **Returns:** `(K,)` intensities in the dtype of `images`.
+    """
+    if method not in INTENSITY_METHODS:
+        raise ValueError(f"method must be one of {INTENSITY_METHODS}, got {method!r}")
+    images = jnp.asarray(images)
+    if images.ndim not in (3, 4) or not jnp.issubdtype(images.dtype, jnp.floating):
+        raise ValueError(f"images must be floating (K, H, W[, C]), got {images.shape} "
+                         f"{images.dtype}")
+    k = images.shape[0]
+    if method == "none":
+        return jnp.ones((k,), images.dtype)
+    if method == "semi_calibrated":
+        res = photometric_stereo(images, lights, mask=mask, method="semi_calibrated",
+                                 **options)
+        return res.info["intensities"].astype(images.dtype)
+    lights = np.asarray(lights, np.float64)
+    if lights.shape != (k, 3):
+        raise ValueError(f"lights must be ({k}, 3), got {lights.shape}")
+    lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)
+    grey = images if images.ndim == 3 else jnp.mean(images, axis=-1)
+    sel = np.ones(grey.shape[1:], bool) if mask is None else np.asarray(mask, bool)
+    if sel.shape != grey.shape[1:]:
+        raise ValueError(f"mask must have shape {grey.shape[1:]}, got {sel.shape}")
+    if not sel.any():
+        raise ValueError("mask is empty")
+    means = np.asarray(jnp.mean(grey[:, sel], axis=1), np.float64)
+    if np.any(~np.isfinite(means)) or np.any(means <= 0):
+        raise ValueError(f"images: frame means over the mask must be positive, got {means}")
+    if method == "frontal":
+        means = means / np.maximum(lights[:, 2], 1e-3)
+    e = means / np.exp(np.mean(np.log(means)))
+    return jnp.asarray(e, images.dtype)

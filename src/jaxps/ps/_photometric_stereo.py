@@ -1,0 +1,168 @@
+"""The public photometric-stereo entry point: validates input, then dispatches on `method`.
+
+Every solver has the signature
+`solver(images, lights, mask, sample_mask, thresholds, **options) -> PSResult` with `images`
+`(K, H, W, C)` (C=1 for grey), `lights` `(K, 3)` unit vectors or `(K, H, W, 3)`, `mask` `(H, W)`
+bool, `sample_mask` `(K, H, W)` bool and `thresholds` = (dark, saturation, shadow) scalars.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
+
+from ..lights._directions import validate_lights
+from ._l2 import PSResult, ps_l2
+from ._oren_nayar import ps_oren_nayar
+from ._robust import ps_barsky, ps_irls, ps_sbl
+from ._semicalibrated import ps_semi_calibrated
+
+__all__ = ["PS_METHODS", "photometric_stereo"]
+
+_SOLVERS = {
+    "l2": ps_l2,
+    "barsky": ps_barsky,
+    "irls": ps_irls,
+    "sbl": ps_sbl,
+    "semi_calibrated": ps_semi_calibrated,
+    "oren_nayar": ps_oren_nayar,
+}
+PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
+# Solvers that check their options on concrete values (and jit their own cores) are called
+# outside the wrapper's jit.
+_EAGER_SOLVERS = frozenset({"semi_calibrated", "oren_nayar"})
+
+
+def _check_images(images) -> tuple[jax.Array, bool]:
+    images = jnp.asarray(images)
+    if not jnp.issubdtype(images.dtype, jnp.floating):
+        raise ValueError(
+            f"images must be floating point in [0, 1] (got dtype {images.dtype}); divide 8-bit "
+            "data by 255 and 16-bit data by 65535, or load with jaxps.acquisition.load_capture"
+        )
+    if images.ndim not in (3, 4):
+        raise ValueError(
+            f"images must be (K, H, W) grey or (K, H, W, C) colour, got shape {images.shape}"
+        )
+    return images, images.ndim == 3
+
+
+def photometric_stereo(
+    images: Float[ArrayLike, "K H W *C"],
+    lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "K H W 3"],
+    *,
+    mask: Bool[ArrayLike, "H W"] | None = None,
+    method: str = "l2",
+    sample_mask: Bool[ArrayLike, "K H W"] | None = None,
+    shadow_threshold: float | None = None,
+    saturation: float = 1.0,
+    dark_threshold: float = 1e-3,
+    **options,
+) -> PSResult:
+    """Per-pixel albedo and unit normal from K >= 3 images under known distant lights.
+
+    Least squares under Lambert's law (Woodham 1980), solved independently per pixel: a
+    one-pixel kernel lifted with `jax.vmap`, jitted. Samples that are NaN/Inf, at or above
+    `saturation` (any channel), below `shadow_threshold` (grey mean) or false in `sample_mask`
+    are left out of that pixel's solve; a pixel left with fewer than 3 usable samples, or whose
+    usable lights do not span 3-D, gets a non-zero `status` and the finite defaults
+    normal (0, 0, 1), albedo 0. Colour stacks share one normal (from the channel-mean solve)
+    and get per-channel albedo.
+
+    **Arguments:**
+    - `images`: `(K, H, W)` grey or `(K, H, W, C)` colour, floating point, linear, in [0, 1].
+    - `lights`: `(K, 3)` directions toward the lights (normalised here), or `(K, H, W, 3)` per
+      pixel for near lights.
+    - `mask`: `(H, W)` bool, pixels to solve (default: all).
+    - `method`: one of `jaxps.PS_METHODS`.
+    - `sample_mask`: `(K, H, W)` bool, samples allowed into the solve (e.g. not saturated in
+      the raw frame before ambient subtraction).
+    - `shadow_threshold`: drop samples whose intensity is below this (default: keep all).
+    - `saturation`: samples at or above this are treated as saturated and dropped.
+    - `dark_threshold`: a pixel whose brightest finite sample is at or below this is `DARK`.
+    - `**options`: passed to the chosen solver (e.g. step limits of iterative methods).
+
+    **Returns:** a `PSResult` (normals `(H, W, 3)`, albedo `(H, W)` or `(H, W, C)`, status,
+    n_used, residual), in the floating dtype of `images`.
+
+    **Raises:** `ValueError` for a wrong shape, dtype, method or light set (see
+    `validate_lights`).
+    """
+    if method not in PS_METHODS:
+        raise ValueError(f"method must be one of {PS_METHODS}, got {method!r}")
+    images, grey = _check_images(images)
+    k, h, w = images.shape[:3]
+
+    lights_shape = np.shape(lights)
+    if len(lights_shape) == 2:
+        if isinstance(lights, jax.core.Tracer):
+            lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
+        else:
+            lights = validate_lights(lights)
+    elif lights_shape != (k, h, w, 3):
+        raise ValueError(
+            f"lights must be (K, 3) or (K, H, W, 3) = {(k, h, w, 3)} to match images "
+            f"{tuple(images.shape[:3])}, got {lights_shape}"
+        )
+    if lights_shape[0] != k:
+        raise ValueError(f"images have K={k} frames but lights have {lights_shape[0]} rows")
+    if k < 3:
+        raise ValueError(f"photometric stereo needs at least 3 images, got K={k}")
+    if mask is not None and np.shape(mask) != (h, w):
+        raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {np.shape(mask)}")
+    if sample_mask is not None and np.shape(sample_mask) != (k, h, w):
+        raise ValueError(
+            f"sample_mask must have shape (K, H, W) = {(k, h, w)}, got {np.shape(sample_mask)}"
+        )
+    for name, value in (("saturation", saturation), ("dark_threshold", dark_threshold)):
+        if not np.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value}")
+    thresholds = (dark_threshold, saturation,
+                  -np.inf if shadow_threshold is None else shadow_threshold)
+
+    # Arrays in `options` are traced; everything else (step limits, loss names, solver
+    # objects) is static. Unhashable options fall back to running the wrapper eagerly.
+    dynamic = {k: v for k, v in options.items() if isinstance(v, (jax.Array, np.ndarray))}
+    static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
+    try:
+        hash(static)
+        run = _run.__wrapped__ if method in _EAGER_SOLVERS else _run
+    except TypeError:
+        run = _run.__wrapped__
+    return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
+               static=static)
+
+
+@functools.partial(jax.jit, static_argnames=("method", "static"))
+def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, static):
+    """Casts, default masks and the grey channel axis, inside one jit with the solver.
+
+    Done here rather than eagerly so that no full-size temporary (an all-true mask, an
+    expanded or sliced copy of the stack) is written to memory: XLA fuses them away.
+    """
+    out_dtype = images.dtype
+    dtype = jnp.float32 if images.dtype == jnp.float16 else images.dtype
+    grey = images.ndim == 3
+    images = images.astype(dtype)
+    if grey:
+        images = images[..., None]
+    k, h, w, _ = images.shape
+    mask = jnp.ones((h, w), bool) if mask is None else jnp.asarray(mask, bool)
+    sample_mask = (jnp.ones((k, h, w), bool) if sample_mask is None
+                   else jnp.asarray(sample_mask, bool))
+    thresholds = tuple(jnp.asarray(t, dtype) for t in thresholds)
+    res = _SOLVERS[method](images, jnp.asarray(lights, dtype), mask, sample_mask, thresholds,
+                           **dict(static), **dynamic)
+    albedo = res.albedo[..., 0] if grey else res.albedo
+    return PSResult(
+        res.normals.astype(out_dtype),
+        albedo.astype(out_dtype),
+        res.status,
+        res.n_used,
+        res.residual.astype(out_dtype),
+        res.info,
+    )

@@ -1,0 +1,26 @@
+"""Reflectance: which model a solved capture needs, a learned BRDF, and relighting.
+
+Takes images with the normals and albedo photometric stereo gave them; gives a model choice
+(Lambert against Oren–Nayar on held-out lights), an MLP BRDF over $(\\theta_i, \\theta_r,
+\\Delta\\alpha, x, y)$ trained with Levenberg–Marquardt (Delaunay and Lambertian baselines),
+images relit under new lights, and normals re-solved with the learned BRDF in the loop.
+"""
+
+from ._brdf import BRDF_METHODS, BRDFFit, BRDFModel, extrapolation_mask, fit_brdf, relight
+from ._brdf_ps import brdf_photometric_stereo
+from ._features import FEATURE_NAMES, brdf_features
+from ._model_choice import ModelChoice, compare_models
+
+__all__ = [
+    "BRDFFit",
+    "BRDFModel",
+    "BRDF_METHODS",
+    "FEATURE_NAMES",
+    "ModelChoice",
+    "brdf_features",
+    "brdf_photometric_stereo",
+    "compare_models",
+    "extrapolation_mask",
+    "fit_brdf",
+    "relight",
+]

@@ -1,0 +1,53 @@
+"""Lambert's law, forward: images from normals, albedo and lights."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+__all__ = ["render_lambertian"]
+
+
+def render_lambertian(
+    normals: Float[ArrayLike, "H W 3"],
+    albedo: Float[ArrayLike, "H W *C"],
+    lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "K H W 3"],
+) -> Float[Array, "K H W *C"]:
+    """Render $I_k = \\rho \\max(0, l_k \\cdot n)$ (attached shadows clamp at 0, no cast shadows).
+
+    **Arguments:**
+    - `normals`: `(H, W, 3)` unit normals.
+    - `albedo`: `(H, W)` grey or `(H, W, C)` colour.
+    - `lights`: `(K, 3)` distant lights or `(K, H, W, 3)` per-pixel lights (not normalised
+      here, so a light vector's length acts as its intensity).
+
+    **Returns:** `(K, H, W)` or `(K, H, W, C)` images in the dtype of `normals`.
+    """
+    normals = jnp.asarray(normals)
+    albedo = jnp.asarray(albedo, normals.dtype)
+    lights = jnp.asarray(lights, normals.dtype)
+    if normals.ndim != 3 or normals.shape[-1] != 3:
+        raise ValueError(f"normals must be (H, W, 3), got {normals.shape}")
+    if albedo.shape[:2] != normals.shape[:2] or albedo.ndim not in (2, 3):
+        raise ValueError(
+            f"albedo must be (H, W) or (H, W, C) with (H, W) = {normals.shape[:2]}, "
+            f"got {albedo.shape}"
+        )
+    if lights.shape[-1] != 3 or lights.ndim not in (2, 4):
+        raise ValueError(f"lights must be (K, 3) or (K, H, W, 3), got {lights.shape}")
+    if lights.ndim == 4 and lights.shape[1:3] != normals.shape[:2]:
+        raise ValueError(f"per-pixel lights {lights.shape} do not match normals {normals.shape}")
+    return _render(normals, albedo, lights)
+
+
+@jax.jit
+def _render(normals, albedo, lights):
+    if lights.ndim == 2:
+        shade = jnp.einsum("kc,hwc->khw", lights, normals)
+    else:
+        shade = jnp.einsum("khwc,hwc->khw", lights, normals)
+    shade = jnp.maximum(shade, 0)
+    if albedo.ndim == 3:
+        return shade[..., None] * albedo[None]
+    return shade * albedo[None]
