@@ -1,15 +1,13 @@
 """Acquisition adapter (eager, numpy): from frame files to a capture ready for the solvers.
 
-Takes frame files (PGM/PNG/TIFF, 8/16-bit, grey or colour), an ambient frame, lights and a
-mask; gives a `Capture`: linear float32 `(K, H, W[, C])` images, ambient subtracted, optionally
-equalised across frames (as the four-source scanner does) and cropped to the face found by
-OpenCV's Lienhart–Maydt Haar cascade, with a mask, a saturation map and frame-quality screening.
-It runs once per capture and hands numpy arrays to the jitted core; OpenCV and colour-science
-load on first use.
+Takes frame files (PGM/PNG/TIFF, 8/16-bit, grey or colour), an ambient frame, lights and a mask;
+gives a `Capture` of linear float32 `(K, H, W[, C])` images, lights, mask and saturation map,
+optionally equalised, cropped to the Haar-detected face and screened for bad frames.
 
 Intensities follow DESIGN.md: float32 in [0, 1] (8-bit / 255, 16-bit / 65535), linear in
 radiance; gamma-encoded sources (8-bit PNG/JPEG by default) are decoded from sRGB with
-colour-science.
+colour-science. It runs once per capture and hands numpy arrays to the jitted core; OpenCV and
+colour-science load on first use.
 """
 
 from ._capture import Capture, load_capture

@@ -1,10 +1,8 @@
 """Photometric stereo: per-pixel normals and albedo from K >= 3 images under known lights.
 
-Takes `(K, H, W[, C])` linear images and `(K, 3)` (or per-pixel `(K, H, W, 3)`) lights; gives a
-`PSResult` of `(H, W, 3)` normals, albedo and a status code per pixel. `photometric_stereo`
-chooses the solver by `method=`: least squares (`"l2"`), the robust `"barsky"`, `"irls"` and
-`"sbl"`, `"semi_calibrated"` (per-frame intensities) and `"oren_nayar"`; near point lights and
-many captures at once have entry points of their own.
+Takes `(K, H, W[, C])` linear images and `(K, 3)` or per-pixel `(K, H, W, 3)` lights; gives a
+`PSResult`: `(H, W, 3)` normals, albedo and a status code per pixel. One module per solver
+family, chosen by `photometric_stereo(method=...)` (`PS_METHODS`).
 """
 
 from ._batch import photometric_stereo_batch

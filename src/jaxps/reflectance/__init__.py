@@ -1,9 +1,8 @@
 """Reflectance: which model a solved capture needs, a learned BRDF, and relighting.
 
 Takes images with the normals and albedo photometric stereo gave them; gives a model choice
-(Lambert against Oren–Nayar on held-out lights), an MLP BRDF over $(\\theta_i, \\theta_r,
-\\Delta\\alpha, x, y)$ trained with Levenberg–Marquardt (Delaunay and Lambertian baselines),
-images relit under new lights, and normals re-solved with the learned BRDF in the loop.
+(Lambert or Oren–Nayar), an MLP BRDF over $(\\theta_i, \\theta_r, \\Delta\\alpha, x, y)$ with
+Delaunay and Lambertian baselines, relit images, and normals re-solved with the BRDF in the loop.
 """
 
 from ._brdf import BRDF_METHODS, BRDFFit, BRDFModel, extrapolation_mask, fit_brdf, relight
