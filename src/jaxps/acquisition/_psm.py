@@ -11,6 +11,8 @@ import os
 import numpy as np
 from jaxtyping import Float
 
+from ._files import read_image
+
 __all__ = ["load_psm"]
 
 
@@ -30,9 +32,6 @@ def load_psm(folder: str | os.PathLike, *, name: str | None = None, linear: bool
 
     **Raises:** `FileNotFoundError` if no `NAME.0.png` or mask exists.
     """
-    import cv2
-    import colour
-
     folder = os.fspath(folder)
     name = os.path.basename(os.path.normpath(folder)) if name is None else name
     paths = []
@@ -42,20 +41,9 @@ def load_psm(folder: str | os.PathLike, *, name: str | None = None, linear: bool
     if not paths or not os.path.isfile(mask_path):
         raise FileNotFoundError(f"no psm capture {name}.0.png + {name}.mask.png in {folder}")
 
-    def read(path):
-        img = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-        if img is None:
-            raise ValueError(f"cannot read image {path}")
-        scale = 65535.0 if img.dtype == np.uint16 else 255.0
-        img = img.astype(np.float32) / np.float32(scale)
-        return img[..., ::-1] if img.ndim == 3 else img
-
-    images = np.stack([read(p) for p in paths])
+    images = np.stack([read_image(p, linearize="srgb" if linear else "none") for p in paths])
     if images.ndim == 3:
         images = np.repeat(images[..., None], 3, axis=-1)
-    images = images[..., :3]
-    if linear:
-        images = np.asarray(colour.cctf_decoding(images, "sRGB"), np.float32)
-    mask = read(mask_path)
+    mask = read_image(mask_path, linearize="none")
     mask = mask.mean(axis=-1) if mask.ndim == 3 else mask
     return np.ascontiguousarray(images, np.float32), mask.astype(np.float32)
