@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ..core._linalg import REL_DET_MIN, solve3
+from ..lights._directions import MAX_LIGHT_CONDITION
 from ..core._status import Status, first_status
 
 __all__ = ["PSResult", "ps_l2"]
@@ -43,113 +44,161 @@ class PSResult(NamedTuple):
     info: dict | None = None
 
 
-def _pixel_l2(i, usable, inside, lights, pinv, thresholds, weighted):
-    """Solve one pixel. `i` is `(K, C)` (C=1 for grey), `usable` `(K,)` bool, `inside` the
-    pixel's mask bit, `lights` `(K, 3)`.
+def _any(xs):
+    return functools.reduce(jnp.logical_or, xs)
 
-    `pinv` is the shared `(3, K)` pseudo-inverse (None for per-pixel lights), used when every
-    sample is usable. With `weighted=False` (static) it is used for every pixel and the
-    per-pixel normal equations are skipped; the last output says whether this pixel dropped a
-    sample and so needs the weighted solve. `thresholds` = (dark, saturation, shadow) as traced
-    scalars. Sums over the K samples and 3 axes are unrolled in Python (K is static and small)
-    so that, once vmapped, every operation is elementwise over pixels (see `solve3`).
 
-    Returns the final (normal, albedo, status, n_used, residual, needs_weights): failed and
-    masked pixels already carry their status and the defaults normal (0, 0, 1), albedo 0.
-    """
-    dark, saturation, shadow = thresholds
-    dtype = i.dtype
-    ks = range(i.shape[0])
-    finite = [jnp.all(jnp.isfinite(i[k])) for k in ks]
-    ik = [jnp.where(finite[k], i[k], 0) for k in ks]  # (C,) each
-    grey = [jnp.mean(x) for x in ik]
-    unsat = [finite[k] & usable[k] & ~jnp.any(ik[k] >= saturation) for k in ks]
-    used = [unsat[k] & (grey[k] >= shadow) for k in ks]
-    w = [u.astype(dtype) for u in used]
+def _grey(x):
+    """Channel mean of one sample, `x` a list of C scalars (unrolled: no reduction op)."""
+    return x[0] if len(x) == 1 else sum(x) / len(x)
 
-    # Normal equations A b = r with A = L^T W L, r = L^T W i; or b = L^+ i when all are used.
-    # Without per-pixel weights A = L^T L is built from the unbatched lights: computed once.
-    wl = [[w[k] * lights[k, p] for p in range(3)] for k in ks] if weighted else lights
-    a = [[sum(wl[k][p] * lights[k, q] for k in ks) for q in range(3)] for p in range(3)]
-    grey_only = i.shape[-1] == 1
-    r = None if grey_only and not weighted else [sum(wl[k][p] * ik[k] for k in ks)
-                                                 for p in range(3)]  # (C,) each
-    if pinv is not None:
-        b_shared = jnp.stack([sum(pinv[p, k] * ik[k] for k in ks) for p in range(3)])
-    if not weighted:
-        b, rel_det = b_shared, jnp.ones((), dtype)
-    else:
-        b, rel_det = solve3(a, r)  # (3, C)
-        if pinv is not None:
-            b = jnp.where(functools.reduce(jnp.logical_and, used), b_shared, b)
 
-    bg = [jnp.mean(b[p]) for p in range(3)]
-    rho_grey = jnp.sqrt(bg[0] ** 2 + bg[1] ** 2 + bg[2] ** 2)
+def _finish(b, sq, n_used, cases, inside, colour_albedo):
+    """Normal, albedo, status, residual from $b = \\rho n$ and the squared misfit `sq`."""
+    rho_grey = jnp.sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
     inv_rho = 1 / jnp.where(rho_grey > 0, rho_grey, 1)
-    n = [x * inv_rho for x in bg]
-    if grey_only:
-        rho = rho_grey[None]
-    else:
-        # Shared normal, per-channel albedo: rho_c = n.(L^T W i_c) / n.(L^T W L) n.
-        nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
-        rho = sum(n[p] * r[p] for p in range(3)) / jnp.maximum(nan, jnp.finfo(dtype).tiny)
-
-    shade = [lights[k, 0] * n[0] + lights[k, 1] * n[1] + lights[k, 2] * n[2] for k in ks]
-    n_used = sum(u.astype(jnp.int32) for u in used)
-    sq = sum(w[k] * jnp.mean(ik[k] - rho * shade[k]) ** 2 for k in ks)
-    residual = jnp.sqrt(sq / jnp.maximum(n_used, 1).astype(dtype))
-
-    n_finite = sum(f.astype(jnp.int32) for f in finite)
-    brightest = functools.reduce(jnp.maximum, [jnp.where(finite[k], grey[k], -jnp.inf)
-                                               for k in ks])
+    n = [v * inv_rho for v in b]
+    rho = [rho_grey] if colour_albedo is None else colour_albedo(n)
+    residual = jnp.sqrt(jnp.maximum(sq, 0) / jnp.maximum(n_used, 1).astype(sq.dtype))
     status = first_status([
         (~inside, Status.MASKED),
-        (n_finite < 3, Status.INVALID),
-        (brightest <= dark, Status.DARK),
-        (sum(u.astype(jnp.int32) for u in unsat) < 3, Status.SATURATED),
-        (n_used < 3, Status.TOO_FEW_LIGHTS),
-        (rel_det < REL_DET_MIN, Status.DEGENERATE),
+        *cases,
         (~(rho_grey > 0), Status.DARK),
         (n[2] < 0, Status.BACKFACING),
     ])
     ok = status == Status.OK
-    normal = jnp.stack([jnp.where(ok, n[0], 0), jnp.where(ok, n[1], 0), jnp.where(ok, n[2], 1)])
-    needs_weights = inside & ~functools.reduce(jnp.logical_and, used)
-    return (normal, jnp.where(ok, rho, 0), status, n_used, jnp.where(ok, residual, 0),
-            needs_weights)
+    normal = (jnp.where(ok, n[0], 0), jnp.where(ok, n[1], 0), jnp.where(ok, n[2], 1))
+    albedo = tuple(jnp.where(ok, v, 0) for v in rho)
+    return normal, albedo, status, n_used, jnp.where(ok, residual, 0)
+
+
+def _pixel_all_used(x, usable, inside, shared, thresholds):
+    """Solve one pixel assuming all K samples are usable, with the shared `(3, K)` $L^+$.
+
+    `x` is a list of K samples, each a list of C channel scalars; `usable` K bools; `shared`
+    = (lights, pinv, null, gram, full_rank) computed once per image. The squared misfit is
+    $\\|N i\\|^2$ with the rows of `null` spanning the complement of the light columns: exact,
+    and cheaper than recomputing $i - L b$. Returns the outputs of `_finish` and a flag that is
+    true when the assumption fails (a sample non-finite, saturated, shadowed or not usable), in
+    which case the pixel must be solved by `_pixel_weighted`.
+    """
+    dark, saturation, shadow = thresholds
+    lights, pinv, null, gram, full_rank = shared
+    ks = range(len(x))
+    g = [_grey(xk) for xk in x]
+    clean = (jnp.isfinite(sum(g))  # one test: a NaN or Inf in any sample makes the sum so
+             & functools.reduce(jnp.logical_and, usable)
+             & ~_any([v >= saturation for xk in x for v in xk])
+             & ~_any([v < shadow for v in g]))
+    b = [sum(pinv[p, k] * g[k] for k in ks) for p in range(3)]
+    sq = sum((sum(null[j, k] * g[k] for k in ks) ** 2 for j in range(null.shape[0])),
+             jnp.zeros((), g[0].dtype))  # K = 3: no null space, zero misfit
+
+    def colour_albedo(n):  # rho_c = n.(L^T i_c) / n.(L^T L) n: the channel's LS albedo at n
+        nan = sum(n[p] * gram[p, q] * n[q] for p in range(3) for q in range(3))
+        nan = jnp.maximum(nan, jnp.finfo(nan.dtype).tiny)
+        return [sum(n[p] * sum(lights[k, p] * x[k][c] for k in ks) for p in range(3)) / nan
+                for c in range(len(x[0]))]
+
+    brightest = functools.reduce(jnp.maximum, g)
+    cases = [(brightest <= dark, Status.DARK), (~full_rank, Status.DEGENERATE)]
+    out = _finish(b, sq, jnp.int32(len(x)), cases, inside,
+                  None if len(x[0]) == 1 else colour_albedo)
+    return *out, inside & ~clean
+
+
+def _pixel_weighted(x, usable, inside, lights, thresholds):
+    """Solve one pixel over its usable samples: $b = (L^T W L)^{-1} L^T W i$ by cofactors.
+
+    `x` and `usable` as in `_pixel_all_used`; `lights` a list of K `[lx, ly, lz]` (shared
+    scalars or this pixel's own vectors).
+    """
+    dark, saturation, shadow = thresholds
+    ks = range(len(x))
+    dtype = x[0][0].dtype
+    g = [_grey(xk) for xk in x]
+    finite = [jnp.isfinite(v) for v in g]
+    g = [jnp.where(finite[k], g[k], 0) for k in ks]
+    x = [[jnp.where(finite[k], v, 0) for v in x[k]] for k in ks]
+    unsat = [finite[k] & usable[k] & ~_any([v >= saturation for v in x[k]]) for k in ks]
+    used = [unsat[k] & (g[k] >= shadow) for k in ks]
+    w = [u.astype(dtype) for u in used]
+    wl = [[w[k] * lights[k][p] for p in range(3)] for k in ks]
+    a = [[sum(wl[k][p] * lights[k][q] for k in ks) for q in range(3)] for p in range(3)]
+    b, rel_det = solve3(a, [sum(wl[k][p] * g[k] for k in ks) for p in range(3)])
+    b = [b[p] for p in range(3)]
+    sq = sum(w[k] * (g[k] - sum(lights[k][p] * b[p] for p in range(3))) ** 2 for k in ks)
+
+    def colour_albedo(n):
+        nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
+        nan = jnp.maximum(nan, jnp.finfo(dtype).tiny)
+        return [sum(n[p] * sum(wl[k][p] * x[k][c] for k in ks) for p in range(3)) / nan
+                for c in range(len(x[0]))]
+
+    def count(flags):
+        return sum(f.astype(jnp.int32) for f in flags)
+
+    n_used = count(used)
+    brightest = functools.reduce(jnp.maximum, [jnp.where(finite[k], g[k], -jnp.inf) for k in ks])
+    cases = [
+        (count(finite) < 3, Status.INVALID),
+        (brightest <= dark, Status.DARK),
+        (count(unsat) < 3, Status.SATURATED),
+        (n_used < 3, Status.TOO_FEW_LIGHTS),
+        (rel_det < REL_DET_MIN, Status.DEGENERATE),
+    ]
+    return _finish(b, sq, n_used, cases, inside, None if len(x[0]) == 1 else colour_albedo)
+
+
+def _shared_constants(lights):
+    """$L^+$, a basis of the null space of $L^T$, $L^T L$ and whether $L$ spans 3-D."""
+    u, s, _ = jnp.linalg.svd(lights, full_matrices=True)
+    full_rank = s[2] > s[0] / MAX_LIGHT_CONDITION
+    return lights, jnp.linalg.pinv(lights), u[:, 3:].T, lights.T @ lights, full_rank
 
 
 @jax.jit
 def ps_l2(images, lights, mask, sample_mask, thresholds):
-    """Jitted core. `images` `(K, H, W, C)`; `lights` `(K, 3)` or `(K, H, W, 3)`."""
+    """Jitted core. `images` `(K, H, W, C)`; `lights` `(K, 3)` or `(K, H, W, 3)`.
+
+    The kernels take one plane per sample and channel (`(H*W,)` each) rather than slicing a
+    `(K, H*W, C)` block: under `vmap`, indexing a batched block moves the pixel axis first (a
+    transposed copy), while separate planes are read in place. Shared lights take a single
+    pass with $L^+$ (`_pixel_all_used`); only if some pixel in the mask dropped a sample is the
+    image solved again with per-pixel weights, a real branch outside `vmap` (under `vmap` over
+    captures `lax.cond` runs both; `photometric_stereo_batch` maps captures in sequence).
+    """
     k, h, w, c = images.shape
-    flat = images.reshape(k, h * w, c)
-    usable = sample_mask.reshape(k, h * w)
-    inside = mask.reshape(h * w)
-    shared = lights.ndim == 2
-    if shared:
-        pinv = jnp.linalg.pinv(lights)
-        light_axis = None
-    else:
-        lights = lights.reshape(k, h * w, 3)
-        lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
-        pinv = None
-        light_axis = 1
 
-    def solve(weighted):
-        kernel = jax.vmap(functools.partial(_pixel_l2, weighted=weighted),
-                          in_axes=(1, 1, 0, light_axis, None, None))
-        return kernel(flat, usable, inside, lights, pinv, thresholds)[:5]
+    def planes(images, sample_mask, mask):
+        x = [[images[i, :, :, j].reshape(-1) for j in range(c)] for i in range(k)]
+        return x, [sample_mask[i].reshape(-1) for i in range(k)], mask.reshape(-1)
 
-    if shared:
-        # Most captures have no pixel that drops a sample: the cheap pass with the shared
-        # pseudo-inverse is then the answer, and the per-pixel normal equations are skipped.
-        *fast, needs_weights = jax.vmap(
-            functools.partial(_pixel_l2, weighted=False),
-            in_axes=(1, 1, 0, None, None, None))(flat, usable, inside, lights, pinv, thresholds)
-        out = jax.lax.cond(jnp.any(needs_weights), lambda: solve(True), lambda: tuple(fast))
+    def weighted(images, lights, mask, sample_mask, thresholds):
+        per_pixel = lights.ndim == 4
+        if per_pixel:
+            lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
+            lt = [[lights[i, ..., p].reshape(-1) for p in range(3)] for i in range(k)]
+        else:
+            lt = [[lights[i, p] for p in range(3)] for i in range(k)]
+        return jax.vmap(_pixel_weighted, in_axes=(0, 0, 0, 0 if per_pixel else None, None))(
+            *planes(images, sample_mask, mask), lt, thresholds)
+
+    def all_used(images, lights, mask, sample_mask, thresholds):
+        return jax.vmap(_pixel_all_used, in_axes=(0, 0, 0, None, None))(
+            *planes(images, sample_mask, mask), _shared_constants(lights), thresholds)
+
+    args = (images, lights, mask, sample_mask, thresholds)
+    if lights.ndim == 2:
+        # The flag pass costs one read of the stack; it lets the branches take only the inputs
+        # as operands (planes or results built outside a `cond` would be copied into it). Where
+        # no sample is dropped the two solves agree to rounding (the tests hold both to numpy
+        # lstsq), so the weighted one replaces the fast one whole rather than pixel by pixel:
+        # a per-pixel merge made XLA-CPU fuse the weighted solve into every output.
+        needs = all_used(*args)[-1]
+        out = jax.lax.cond(jnp.any(needs), weighted, lambda *a: all_used(*a)[:-1], *args)
     else:
-        out = solve(True)
-    normals, albedo, status, n_used, residual = out
-    return PSResult(normals.reshape(h, w, 3), albedo.reshape(h, w, c), status.reshape(h, w),
-                    n_used.reshape(h, w), residual.reshape(h, w))
+        out = weighted(*args)
+    normal, albedo, status, n_used, residual = out
+    return PSResult(jnp.stack(normal, -1).reshape(h, w, 3), jnp.stack(albedo, -1).reshape(h, w, c),
+                    status.reshape(h, w), n_used.reshape(h, w), residual.reshape(h, w))
