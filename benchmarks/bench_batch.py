@@ -1,7 +1,10 @@
-"""Captures per second at 1280x1024x5 (L2, batched) and the semi-calibrated solver's time.
+"""Captures per second at 1280x1024x5 (L2, batched against single calls) and peak memory of a
+64-capture batch.
 
 Run: `OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_batch.py [--quick]`
 -> benchmarks/results/batch.json and batch.png. Baseline in the same run: N single calls.
+The 64-capture run is a fresh process (`--peak-rss N CHUNK`) whose peak resident memory
+(`ru_maxrss`) is recorded, input stack included.
 """
 
 from __future__ import annotations
@@ -10,21 +13,20 @@ import json
 import os
 import pathlib
 import platform
+import resource
+import subprocess
 import sys
 
 import jax
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-import jaxps  # noqa: E402
+import jaxps
 
 OUT = pathlib.Path(__file__).resolve().parent / "results"
 QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 # --quick (used by `python -m benchmarks --quick`): 256x320, for a smoke run, marked in the JSON.
-H, W, K, N = (256, 320, 5, 2) if QUICK else (1024, 1280, 5, 4)
+H, W, K, N = (256, 320, 5, 2) if QUICK else (1024, 1280, 5, 8)
+N_BIG = 8 if QUICK else 64
 
 
 try:
@@ -34,30 +36,51 @@ except ImportError:  # run as a script
     from benchmarks._common import timed
 
 
-def main():
-    rng = np.random.default_rng(0)
+def captures(n, seed=0):
+    """`n` copies of a synthetic face with per-frame flash gains in [0.85, 1.15]; the mask."""
+    rng = np.random.default_rng(seed)
     lights = jaxps.synthetic.scanner_lights(20.0)
-    surface = jaxps.synthetic.face_like(H, W)
-    scene = jaxps.synthetic.render_scene(surface, lights)
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(H, W), lights)
     base = np.asarray(scene.images)
     caps = np.stack([base * rng.uniform(0.85, 1.15, (K, 1, 1)).astype(np.float32)
-                     for _ in range(N)]).astype(np.float32)
-    mask = np.asarray(scene.mask)
+                     for _ in range(n)]).astype(np.float32)
+    return caps, lights, np.asarray(scene.mask)
+
+
+def peak_rss(n, chunk):
+    """Solve `n` captures in chunks of `chunk` in this process; print the peak RSS in GB."""
+    caps, lights, mask = captures(n)
+    res = jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=chunk)
+    jax.block_until_ready(res)
+    ok = float(np.mean(np.asarray(res.status) == 0))
+    print(json.dumps({"peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+                      "ok_fraction": ok}))
+
+
+def main():
+    caps, lights, mask = captures(N)
     res = {"device": str(jax.devices()[0]), "device_count": jax.device_count(),
            "platform": platform.processor() or platform.machine(),
            "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
            "shape": [N, K, H, W], "quick": QUICK}
-    _, first, run = timed(lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=2),
-                          repeats=2)
-    res["batch_l2"] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run}
-    _, first, run = timed(lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=2,
-                                                                 vmap_size=1), repeats=2)
-    res["batch_l2_lax_map"] = {"compile_plus_first_s": first, "run_s": run,
-                               "captures_per_s": N / run}
-    _, first, run = timed(lambda: [jaxps.photometric_stereo(c, lights, mask=mask) for c in caps],
-                          repeats=2)
-    res["single_calls_l2"] = {"compile_plus_first_s": first, "run_s": run,
-                              "captures_per_s": N / run}
+    rows = {
+        "batch_l2": lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask),
+        "batch_l2_vmap": lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask,
+                                                                vmap_size=N),
+        "single_calls_l2": lambda: [jaxps.photometric_stereo(c, lights, mask=mask)
+                                    for c in caps],
+    }
+    for name, fn in rows.items():
+        _, first, run = timed(fn, repeats=3)
+        res[name] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run}
+    res["batch_over_single_throughput"] = (res["batch_l2"]["captures_per_s"]
+                                           / res["single_calls_l2"]["captures_per_s"])
+    chunk = 8
+    out = subprocess.run([sys.executable, __file__, "--peak-rss", str(N_BIG), str(chunk)]
+                         + (["--quick"] if QUICK else []), capture_output=True, text=True,
+                         check=True)
+    res["batch_peak_memory"] = {"captures": N_BIG, "chunk": chunk,
+                                **json.loads(out.stdout.strip().splitlines()[-1])}
     _, first, run = timed(lambda: jaxps.photometric_stereo(caps[0], lights, mask=mask,
                                                            method="semi_calibrated"), repeats=1)
     res["semi_calibrated_one_capture"] = {"compile_plus_first_s": first, "run_s": run}
@@ -66,8 +89,13 @@ def main():
     res["frontal_estimate_one_capture"] = {"compile_plus_first_s": first, "run_s": run}
     OUT.mkdir(exist_ok=True)
     (OUT / "batch.json").write_text(json.dumps(res, indent=1))
-    labels = ["batch vmap", "batch lax.map", "single calls", "semi-cal."]
-    vals = [res["batch_l2"]["run_s"] / N, res["batch_l2_lax_map"]["run_s"] / N,
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = ["batch", "batch vmap", "single calls", "semi-cal."]
+    vals = [res["batch_l2"]["run_s"] / N, res["batch_l2_vmap"]["run_s"] / N,
             res["single_calls_l2"]["run_s"] / N,
             res["semi_calibrated_one_capture"]["run_s"]]
     plt.figure(figsize=(6, 3))
@@ -80,4 +108,8 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    if "--peak-rss" in sys.argv:
+        i = sys.argv.index("--peak-rss")
+        peak_rss(int(sys.argv[i + 1]), int(sys.argv[i + 2]))
+    else:
+        main()

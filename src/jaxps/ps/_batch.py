@@ -1,8 +1,8 @@
 """Many captures at once: a leading capture axis, `jax.vmap` over captures, sharded across devices.
 
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
-captures of the same size in one jitted call: the single-capture solver is lifted over the
-capture axis with `jax.vmap` (in groups of `vmap_size`, run in sequence by `jax.lax.map`), and
+captures of the same size in one jitted call: the single-capture solver is mapped over the
+capture axis with `jax.lax.map` (in sequence, or in `jax.vmap` groups of `vmap_size`), and
 when several devices are present the capture axis is split across them with `jax.sharding`
 (a 1-D mesh named `"captures"`). The results equal N separate
 `photometric_stereo` calls. `jaxps.reconstruct_many` (`cli/_reconstruct.py`) runs capture
@@ -67,8 +67,10 @@ def _batched_fn(method, options, shared_lights, shared_mask, vmap_size):
 
         xs = (images, None if shared_lights else lights, None if shared_mask else mask,
               sample_mask)
-        if vmap_size is None:
+        if vmap_size == "all":
             return jax.vmap(one)(xs)
+        # `vmap_size=None`: one capture after another, so each keeps the single-call kernel
+        # (its `lax.cond` stays a branch; under `vmap` both sides would run).
         return jax.lax.map(one, xs, batch_size=vmap_size)
 
     fn = jax.jit(batched)
@@ -100,10 +102,11 @@ def photometric_stereo_batch(
     - `chunk`: solve at most this many captures per call (bounds host/device memory); default
       all.
     - `vmap_size`: captures vectorised together with `jax.vmap` inside one call; the groups run
-      one after another (`jax.lax.map(..., batch_size=vmap_size)`). `None` (default) vmaps the
-      whole chunk. On a CPU neither beats N single calls (the pixels already fill the cores,
-      and under `vmap` the L2 solver's whole-image fast path, a `lax.cond` on "no sample
-      dropped", evaluates both branches): see docs/captures.md for the measured ratios.
+      one after another (`jax.lax.map(..., batch_size=vmap_size)`). `None` (default) runs the
+      captures one after another inside the one call, which on a CPU is the fastest: the
+      pixels of one capture already fill the cores, and under `vmap` the L2 solver's branch on
+      "some sample dropped" (a `lax.cond`) evaluates both sides. See docs/captures.md for the
+      measured ratios.
 
     With several devices the whole chunk is vmapped and its capture axis padded to a multiple
     of the device count and sharded across them (a 1-D mesh `"captures"`).
@@ -143,7 +146,7 @@ def photometric_stereo_batch(
     if vmap_size is not None and not (isinstance(vmap_size, int) and vmap_size >= 1):
         raise ValueError(f"vmap_size must be a positive int or None, got {vmap_size!r}")
     fn = _batched_fn(method, options, shared_lights, shared_mask,
-                     None if len(jax.devices()) > 1 else vmap_size)
+                     "all" if len(jax.devices()) > 1 else vmap_size)
     devices = jax.devices()
     step = n if chunk is None else chunk
     parts = []
