@@ -9,91 +9,65 @@ solvers) underneath. The public names of `core`, `lights`, `ps`, `integration`, 
 keep theirs under their own name (a few, such as `check_frames`, are also here).
 """
 
+import importlib
 import importlib.metadata
 
-from . import (
-    acquisition,
-    cli,
-    core,
-    evaluate,
-    integration,
-    lights,
-    ps,
-    reflectance,
-    report,
-    shading,
-    stability,
-    synthetic,
+# Subpackages and names load on first use (PEP 562), so `import jaxps` is instant and
+# `jaxps --help` does not wait for jax; `jaxps.ps`, `jaxps.photometric_stereo` and
+# `from jaxps import photometric_stereo` work as if imported here.
+_SUBPACKAGES = (
+    "acquisition",
+    "cli",
+    "core",
+    "evaluate",
+    "integration",
+    "lights",
+    "ps",
+    "reflectance",
+    "report",
+    "shading",
+    "stability",
+    "synthetic",
 )
-from .acquisition import (
-    FrameCheck,
-    QualityReport,
-    QualityThresholds,
-    Registration,
-    check_file,
-    check_frames,
-    drop_flagged,
-    estimate_shifts,
-    load_psm,
-    register_frames,
-    shift_frames,
-)
-from .cli import reconstruct_many, summary_table
-from .core import BatchedLM, Status, status_counts
-from .evaluate import angular_error
-from .integration import (
-    INTEGRATION_METHODS,
-    IntegrationResult,
-    gradients_from_normals,
-    integrability_map,
-    integrate,
-    normals_from_height,
-)
-from .lights import (
-    ChromeCalibration,
-    lights_from_angles,
-    lights_from_chrome,
-    load_lights,
-    near_light_field,
-    parse_yale_name,
-    sphere_from_mask,
-    surface_points,
-    validate_lights,
-)
-from .ps import (
-    INTENSITY_METHODS,
-    PS_METHODS,
-    NearResult,
-    PSResult,
-    intensity_estimate,
-    near_photometric_stereo,
-    photometric_stereo,
-    photometric_stereo_batch,
-)
-from .reflectance import (
-    BRDF_METHODS,
-    FEATURE_NAMES,
-    BRDFFit,
-    BRDFModel,
-    ModelChoice,
-    brdf_features,
-    brdf_photometric_stereo,
-    compare_models,
-    extrapolation_mask,
-    fit_brdf,
-    relight,
-)
-from .shading import (
-    OREN_NAYAR_FORMS,
-    LambertianCheck,
-    RoughnessFit,
-    fit_roughness,
-    lambertian_check,
-    oren_nayar,
-    plot_lambertian_check,
-    render_lambertian,
-    render_oren_nayar,
-)
+_NAMES = {
+    "acquisition": (
+        "FrameCheck", "QualityReport", "QualityThresholds", "Registration", "check_file",
+        "check_frames", "drop_flagged", "estimate_shifts", "load_psm", "register_frames",
+        "shift_frames",
+    ),
+    "cli": (
+        "reconstruct_many", "summary_table",
+    ),
+    "core": (
+        "BatchedLM", "Status", "status_counts",
+    ),
+    "evaluate": (
+        "angular_error",
+    ),
+    "integration": (
+        "INTEGRATION_METHODS", "IntegrationResult", "gradients_from_normals", "integrability_map",
+        "integrate", "normals_from_height",
+    ),
+    "lights": (
+        "ChromeCalibration", "lights_from_angles", "lights_from_chrome", "load_lights",
+        "near_light_field", "parse_yale_name", "sphere_from_mask", "surface_points",
+        "validate_lights",
+    ),
+    "ps": (
+        "INTENSITY_METHODS", "PS_METHODS", "NearResult", "PSResult", "intensity_estimate",
+        "near_photometric_stereo", "photometric_stereo", "photometric_stereo_batch",
+    ),
+    "reflectance": (
+        "BRDF_METHODS", "FEATURE_NAMES", "BRDFFit", "BRDFModel", "ModelChoice", "brdf_features",
+        "brdf_photometric_stereo", "compare_models", "extrapolation_mask", "fit_brdf", "relight",
+    ),
+    "shading": (
+        "OREN_NAYAR_FORMS", "LambertianCheck", "RoughnessFit", "fit_roughness", "lambertian_check",
+        "oren_nayar", "plot_lambertian_check", "render_lambertian", "render_oren_nayar",
+    ),
+}
+_HOME = {name: sub for sub, names in _NAMES.items() for name in names}
+
 
 __version__ = importlib.metadata.version("jaxps")
 
@@ -173,3 +147,15 @@ __all__ = [
     "surface_points",
     "validate_lights",
 ]
+
+
+def __getattr__(name):
+    if name in _SUBPACKAGES:
+        return importlib.import_module(f"{__name__}.{name}")
+    if name in _HOME:
+        return getattr(importlib.import_module(f"{__name__}.{_HOME[name]}"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted(set(globals()) | set(__all__))

@@ -5,7 +5,15 @@ images). `reconstruct` is the whole pipeline on one capture's files, callable fr
 `reconstruct_many` solves many capture folders (also `jaxps.reconstruct_many`).
 """
 
+import importlib
+
 from ._main import build_parser, main
-from ._reconstruct import reconstruct, reconstruct_many, summary_table
 
 __all__ = ["build_parser", "main", "reconstruct", "reconstruct_many", "summary_table"]
+
+
+def __getattr__(name):
+    # The pipeline functions import jax; `jaxps --help` should not wait for it.
+    if name in ("reconstruct", "reconstruct_many", "summary_table"):
+        return getattr(importlib.import_module(f"{__name__}._reconstruct"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

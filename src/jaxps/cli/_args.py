@@ -1,8 +1,13 @@
-"""Options that several subcommands share."""
+"""The command line's parser: one function per subcommand, and the options they share.
+
+argparse only, no jax or jaxps import, so that `jaxps --help` answers at once; `_main` imports
+a subcommand's module (named by `module` in the parsed arguments) only to run it.
+"""
 
 from __future__ import annotations
 
-__all__ = ["add_light_args"]
+__all__ = ["add_light_args", "demo_parser", "reconstruct_parser", "relight_parser",
+           "report_parser"]
 
 
 def add_light_args(p) -> None:
@@ -12,3 +17,93 @@ def add_light_args(p) -> None:
     g.add_argument("--yale-names", action="store_true",
                    help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
     p.add_argument("--ambient", help="ambient-only control frame to subtract")
+
+
+def reconstruct_parser(sub) -> None:
+    p = sub.add_parser(
+        "reconstruct",
+        help="frames -> normals, albedo, height, mesh and a JSON summary",
+        description="Reconstruct normals, albedo and a height map from a photometric-stereo "
+        "frame stack, and write normals.png (16-bit, n = v/65535*2-1), albedo.png, height.npy, "
+        "mesh.ply, preview.png and summary.json to --out.",
+    )
+    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
+                   "several folders are several captures (one progress bar, a summary table)")
+    p.add_argument("--check-quality", action="store_true",
+                   help="drop frames flagged by jaxps.check_frames (corrupt, badly exposed or "
+                   "inconsistent) before solving")
+    add_light_args(p)
+    p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
+    p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
+    p.add_argument("--equalize", action="store_true",
+                   help="equalise mean intensity across frames (four-source scanner)")
+    p.add_argument("--shadow-threshold", type=float, default=None,
+                   help="drop samples below this intensity from each pixel's solve")
+    p.add_argument("--method", default="l2", help="photometric-stereo method (jaxps.PS_METHODS)")
+    p.add_argument("--integration", default="fc",
+                   help="integration method (jaxps.INTEGRATION_METHODS)")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.add_argument("--report", action="store_true",
+                   help="also write lambertian_check.png and report.html (see 'jaxps report')")
+    p.set_defaults(module="_reconstruct")
+
+
+def demo_parser(sub) -> None:
+    p = sub.add_parser(
+        "demo",
+        help="render a synthetic face capture with known truth, reconstruct it, print errors",
+        description="Render a face-like surface under five scanner-like lights (16-bit PNG "
+        "frames, an ambient frame and lights.txt in OUT/frames), run the same pipeline as "
+        "'jaxps reconstruct' on those files, and compare with the known truth.",
+    )
+    p.add_argument("--out", default="jaxps-demo", help="output folder (default: jaxps-demo)")
+    p.add_argument("--size", type=int, default=320, help="image height in pixels (default 320)")
+    p.add_argument("--noise", type=float, default=0.005,
+                   help="Gaussian noise s.d. in [0, 1] units (default 0.005)")
+    p.add_argument("--seed", type=int, default=0)
+    p.set_defaults(module="_demo")
+
+
+def report_parser(sub) -> None:
+    p = sub.add_parser(
+        "report",
+        help="an HTML page for a run folder: maps, error maps against ground truth, timings",
+        description="Write RUN_DIR/report.html (figures in RUN_DIR/report_files/) for a folder "
+        "written by 'jaxps reconstruct': normal map, albedo, shaded height, status, the "
+        "Lambertian check plot if the run has one, timings; with ground truth, error maps.",
+    )
+    p.add_argument("run_dir", help="a folder written by 'jaxps reconstruct'")
+    p.add_argument("--truth-normals", help="ground-truth normal map PNG (16-bit, same grid)")
+    p.add_argument("--truth-depth", help="ground-truth depth (.npz key depth_gt, or .npy)")
+    p.add_argument("--intrinsics", help="K.txt camera matrix for --truth-depth")
+    p.add_argument("--truth-mask", help="mask image for the ground truth")
+    p.add_argument("--out", help="HTML path (default RUN_DIR/report.html)")
+    p.set_defaults(module="_report")
+
+
+def relight_parser(sub) -> None:
+    p = sub.add_parser(
+        "relight",
+        help="fit a BRDF to the frames and render the face under new lights",
+        description="Photometric stereo on the frames, then fit_brdf (default mlp_ratio), then "
+        "write relit PNGs for each --light, relight.gif (a light circling the face) and "
+        "relight.json (fit report) to --out.",
+    )
+    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
+    add_light_args(p)
+    p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
+    p.add_argument("--method", default="mlp_ratio", help="BRDF model (jaxps.BRDF_METHODS)")
+    p.add_argument("--check-quality", action="store_true",
+                   help="drop frames flagged by jaxps.check_frames (e.g. interlace-combed) "
+                   "before fitting")
+    p.add_argument("--light", action="append", default=[], metavar="AZ,EL",
+                   help="a new light, azimuth,elevation in degrees (Yale B); repeatable; write "
+                   "--light=-50,0 when the azimuth is negative")
+    p.add_argument("--circle-zenith", type=float, default=30.0,
+                   help="zenith angle (deg) of the animation's circling light (default 30)")
+    p.add_argument("--circle-frames", type=int, default=36, help="animation frames (36)")
+    p.add_argument("--samples", type=int, default=100_000, help="training samples (100000)")
+    p.add_argument("--max-steps", type=int, default=30, help="Levenberg-Marquardt steps (30)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.set_defaults(module="_relight")

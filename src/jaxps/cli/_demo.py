@@ -12,23 +12,7 @@ from ..evaluate import angular_error
 from ..report._writers import read_normal_map, write_json
 from ._reconstruct import reconstruct
 
-__all__ = ["add_parser", "run"]
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "demo",
-        help="render a synthetic face capture with known truth, reconstruct it, print errors",
-        description="Render a face-like surface under five scanner-like lights (16-bit PNG "
-        "frames, an ambient frame and lights.txt in OUT/frames), run the same pipeline as "
-        "'jaxps reconstruct' on those files, and compare with the known truth.",
-    )
-    p.add_argument("--out", default="jaxps-demo", help="output folder (default: jaxps-demo)")
-    p.add_argument("--size", type=int, default=320, help="image height in pixels (default 320)")
-    p.add_argument("--noise", type=float, default=0.005,
-                   help="Gaussian noise s.d. in [0, 1] units (default 0.005)")
-    p.add_argument("--seed", type=int, default=0)
-    p.set_defaults(func=run)
+__all__ = ["run"]
 
 
 def run(args) -> int:

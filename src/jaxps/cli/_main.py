@@ -3,10 +3,11 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 import importlib.metadata
 import sys
 
-from . import _demo, _reconstruct, _relight, _report
+from . import _args
 
 __all__ = ["build_parser", "main"]
 
@@ -18,8 +19,9 @@ def build_parser() -> argparse.ArgumentParser:
     version = importlib.metadata.version("jaxps")
     parser.add_argument("--version", action="version", version=f"jaxps {version}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in (_reconstruct, _demo, _report, _relight):
-        command.add_parser(sub)
+    for add in (_args.reconstruct_parser, _args.demo_parser, _args.report_parser,
+                _args.relight_parser):
+        add(sub)
     return parser
 
 
@@ -27,7 +29,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return args.func(args)
+        return importlib.import_module(f"{__package__}.{args.module}").run(args)
     except (ValueError, FileNotFoundError) as err:
         print(f"jaxps {args.command}: error: {err}", file=sys.stderr)
         return 2

@@ -19,38 +19,8 @@ from ..integration import integrate
 from ..ps import PSResult, photometric_stereo
 from ..report import lambertian_check_plot, write_report
 from ..report._writers import write_albedo, write_json, write_normal_map, write_ply, write_preview
-from ._args import add_light_args
 
-__all__ = ["add_parser", "reconstruct", "reconstruct_many", "run", "summary_table"]
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "reconstruct",
-        help="frames -> normals, albedo, height, mesh and a JSON summary",
-        description="Reconstruct normals, albedo and a height map from a photometric-stereo "
-        "frame stack, and write normals.png (16-bit, n = v/65535*2-1), albedo.png, height.npy, "
-        "mesh.ply, preview.png and summary.json to --out.",
-    )
-    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
-                   "several folders are several captures (one progress bar, a summary table)")
-    p.add_argument("--check-quality", action="store_true",
-                   help="drop frames flagged by jaxps.check_frames (corrupt, badly exposed or "
-                   "inconsistent) before solving")
-    add_light_args(p)
-    p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
-    p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
-    p.add_argument("--equalize", action="store_true",
-                   help="equalise mean intensity across frames (four-source scanner)")
-    p.add_argument("--shadow-threshold", type=float, default=None,
-                   help="drop samples below this intensity from each pixel's solve")
-    p.add_argument("--method", default="l2", help="photometric-stereo method (jaxps.PS_METHODS)")
-    p.add_argument("--integration", default="fc",
-                   help="integration method (jaxps.INTEGRATION_METHODS)")
-    p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.add_argument("--report", action="store_true",
-                   help="also write lambertian_check.png and report.html (see 'jaxps report')")
-    p.set_defaults(func=run)
+__all__ = ["reconstruct", "reconstruct_many", "run", "summary_table"]
 
 
 class _Stages:

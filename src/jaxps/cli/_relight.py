@@ -17,9 +17,8 @@ from ..lights import lights_from_angles
 from ..ps import photometric_stereo
 from ..reflectance import fit_brdf, relight
 from ..report._writers import write_json
-from ._args import add_light_args
 
-__all__ = ["add_parser", "circle_lights", "relight_capture", "run"]
+__all__ = ["circle_lights", "relight_capture", "run"]
 
 
 def circle_lights(n: int, zenith_deg: float) -> np.ndarray:
@@ -123,34 +122,6 @@ def relight_capture(
     }
     write_json(os.path.join(out, "relight.json"), json.loads(json.dumps(summary)))
     return summary
-
-
-def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "relight",
-        help="fit a BRDF to the frames and render the face under new lights",
-        description="Photometric stereo on the frames, then fit_brdf (default mlp_ratio), then "
-        "write relit PNGs for each --light, relight.gif (a light circling the face) and "
-        "relight.json (fit report) to --out.",
-    )
-    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
-    add_light_args(p)
-    p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
-    p.add_argument("--method", default="mlp_ratio", help="BRDF model (jaxps.BRDF_METHODS)")
-    p.add_argument("--check-quality", action="store_true",
-                   help="drop frames flagged by jaxps.check_frames (e.g. interlace-combed) "
-                   "before fitting")
-    p.add_argument("--light", action="append", default=[], metavar="AZ,EL",
-                   help="a new light, azimuth,elevation in degrees (Yale B); repeatable; write "
-                   "--light=-50,0 when the azimuth is negative")
-    p.add_argument("--circle-zenith", type=float, default=30.0,
-                   help="zenith angle (deg) of the animation's circling light (default 30)")
-    p.add_argument("--circle-frames", type=int, default=36, help="animation frames (36)")
-    p.add_argument("--samples", type=int, default=100_000, help="training samples (100000)")
-    p.add_argument("--max-steps", type=int, default=30, help="Levenberg-Marquardt steps (30)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True, help="output folder (created if missing)")
-    p.set_defaults(func=run)
 
 
 def run(args) -> int:
