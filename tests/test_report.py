@@ -147,3 +147,28 @@ def test_report_escapes_names(synthetic_run, tmp_path):
     page = report.write_report(run)
     assert "<script>" not in page.read_text()
     assert "&lt;script&gt;" in page.read_text()
+
+
+def test_preview_panels_show_normals_albedo_and_shading(tmp_path):
+    from jaxps.report._writers import write_preview
+
+    h, w = 600, 400
+    mask = np.zeros((h, w), bool)
+    mask[100:500, 50:350] = True
+    normals = np.zeros((h, w, 3), np.float32)
+    normals[...] = [0.6, 0.0, 0.8]
+    yy, xx = np.mgrid[:h, :w]
+    height = -0.05 * xx.astype(np.float32)  # a plane falling to the right: one shade
+    write_preview(tmp_path / "p.png", normals, np.full((h, w), 0.5, np.float32), height, mask)
+    img = cv2.imread(str(tmp_path / "p.png"))[..., ::-1]
+    scale = 480 / h
+    ph, pw = round(h * scale), round(w * scale)
+    assert img.shape == (28 + ph, 3 * pw + 16, 3)
+    row = img[28:]
+    cy, cx = ph // 2, pw // 2
+    np.testing.assert_allclose(row[cy, cx], np.round(np.array([0.8, 0.5, 0.9]) * 255), atol=1)
+    assert tuple(row[5, 5]) == (255, 255, 255)  # outside the mask
+    # Albedo is scaled by its 99.5th percentile: a constant albedo is full white inside.
+    assert tuple(row[cy, pw + 8 + cx]) == (255, 255, 255)
+    shade = row[cy - 20:cy + 20, 2 * (pw + 8) + cx - 20:2 * (pw + 8) + cx + 20]
+    assert shade.min() == shade.max()  # a plane has one shade (interior, away from the edges)

@@ -19,8 +19,6 @@ from typing import NamedTuple
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
-from scipy import ndimage
-from skimage.registration import phase_cross_correlation
 
 __all__ = ["Registration", "estimate_shifts", "register_frames", "shift_frames"]
 
@@ -53,6 +51,8 @@ def shift_frames(
                          f"and {shifts.shape}")
     if not np.all(np.isfinite(shifts)):
         raise ValueError("shifts must be finite")
+    from scipy import ndimage  # SciPy and scikit-image load when first used
+
     out = np.empty_like(arr)
     for i, s in enumerate(shifts):
         full = (s[0], s[1]) + (0.0,) * (arr.ndim - 3)
@@ -118,6 +118,8 @@ def estimate_shifts(
         refs = np.asarray(reference, np.float64)
         if refs.shape != grey.shape:
             raise ValueError(f"reference images must have shape {grey.shape}, got {refs.shape}")
+    from skimage.registration import phase_cross_correlation
+
     shifts = np.zeros((k, 2))
     for i in range(k):
         a = _prepare(refs[i], box, win)

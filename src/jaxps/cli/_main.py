@@ -8,6 +8,7 @@ import importlib.metadata
 import sys
 
 from . import _args
+from ._cache import enable_compilation_cache
 
 __all__ = ["build_parser", "main"]
 
@@ -28,6 +29,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
+    enable_compilation_cache()
     try:
         return importlib.import_module(f"{__package__}.{args.module}").run(args)
     except (ValueError, FileNotFoundError) as err:

@@ -17,7 +17,6 @@ from ..acquisition import check_frames, drop_flagged, load_capture
 from ..core import Status, status_counts
 from ..integration import integrate
 from ..ps import PSResult, photometric_stereo
-from ..report import lambertian_check_plot, write_report
 from ..report._writers import write_albedo, write_json, write_normal_map, write_ply, write_preview
 
 __all__ = ["reconstruct", "reconstruct_many", "run", "summary_table"]
@@ -123,6 +122,8 @@ def reconstruct(
         "note": "timings include JIT compilation on the first call",
     }
     if report:
+        from ..report import lambertian_check_plot, write_report  # matplotlib: only when asked
+
         summary["lambertian_check"] = lambertian_check_plot(
             cap.images, res.normals, res.albedo, cap.lights, mask=ok,
             path=os.path.join(out, "lambertian_check.png"))

@@ -5,7 +5,15 @@ cofactors, and a Levenberg–Marquardt for millions of tiny per-pixel problems. 
 knows about images, files or lights.
 """
 
-from ._batched_lm import BatchedLM
+import importlib
+
 from ._status import Status, status_counts
 
 __all__ = ["BatchedLM", "Status", "status_counts"]
+
+
+def __getattr__(name):
+    # BatchedLM needs equinox; load it (and it) only when asked for.
+    if name == "BatchedLM":
+        return importlib.import_module(f"{__name__}._batched_lm").BatchedLM
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

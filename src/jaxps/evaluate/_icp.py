@@ -29,13 +29,15 @@ that layout.
 from __future__ import annotations
 
 import functools
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Int
-from scipy.spatial import cKDTree
+
+if TYPE_CHECKING:
+    from scipy.spatial import cKDTree
 
 __all__ = [
     "ICPResult",
@@ -176,6 +178,8 @@ def estimate_normals(
     """
     pts = _check_points(points, "points")
     k = int(min(max(neighbours, 3), pts.shape[0]))
+    from scipy.spatial import cKDTree  # SciPy loads when first used
+
     tree = cKDTree(pts) if tree is None else tree
     _, idx = tree.query(pts, k=k)
     nb = pts[idx].astype(np.float64)  # (N, k, 3)
@@ -311,6 +315,8 @@ def icp(
     if max_distance is not None and not max_distance > 0:
         raise ValueError(f"max_distance must be positive, got {max_distance}")
     dtype = src.dtype
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(tgt)
     if method == "point_to_plane":
         if target_normals is None:

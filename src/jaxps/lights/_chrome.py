@@ -15,7 +15,6 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-import scipy.ndimage as ndi
 from jaxtyping import ArrayLike, Bool, Float
 
 __all__ = ["ChromeCalibration", "lights_from_chrome", "sphere_from_mask"]
@@ -82,6 +81,8 @@ def lights_from_chrome(
         raise ValueError(f"mask must have shape {images.shape[1:]}, got {mask.shape}")
     if not 0 < level <= 1:
         raise ValueError(f"level must be in (0, 1], got {level}")
+    import scipy.ndimage as ndi  # here, not at import: `import jaxps` stays quick
+
     (r0, c0), radius = sphere_from_mask(mask)
     inside = mask >= 0.5 * mask.max()
     k = images.shape[0]

@@ -9,6 +9,7 @@ bool, `sample_mask` `(K, H, W)` bool and `thresholds` = (dark, saturation, shado
 from __future__ import annotations
 
 import functools
+import importlib
 
 import jax
 import jax.numpy as jnp
@@ -16,20 +17,19 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
 from ..lights._directions import validate_lights
-from ._l2 import PSResult, ps_l2
-from ._oren_nayar import ps_oren_nayar
-from ._robust import ps_barsky, ps_irls, ps_sbl
-from ._semicalibrated import ps_semi_calibrated
+from ._l2 import PSResult
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
 
+# method -> (module of this package, solver). Modules load on first use, so the iterative
+# solvers' optimistix and equinox are not imported by a plain L2 run.
 _SOLVERS = {
-    "l2": ps_l2,
-    "barsky": ps_barsky,
-    "irls": ps_irls,
-    "sbl": ps_sbl,
-    "semi_calibrated": ps_semi_calibrated,
-    "oren_nayar": ps_oren_nayar,
+    "l2": ("_l2", "ps_l2"),
+    "barsky": ("_robust", "ps_barsky"),
+    "irls": ("_robust", "ps_irls"),
+    "sbl": ("_robust", "ps_sbl"),
+    "semi_calibrated": ("_semicalibrated", "ps_semi_calibrated"),
+    "oren_nayar": ("_oren_nayar", "ps_oren_nayar"),
 }
 PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
 # Solvers that check their options on concrete values (and jit their own cores) are called
@@ -155,7 +155,9 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
     sample_mask = (jnp.ones((k, h, w), bool) if sample_mask is None
                    else jnp.asarray(sample_mask, bool))
     thresholds = tuple(jnp.asarray(t, dtype) for t in thresholds)
-    res = _SOLVERS[method](images, jnp.asarray(lights, dtype), mask, sample_mask, thresholds,
+    module, name = _SOLVERS[method]
+    solver = getattr(importlib.import_module(f"{__package__}.{module}"), name)
+    res = solver(images, jnp.asarray(lights, dtype), mask, sample_mask, thresholds,
                            **dict(static), **dynamic)
     albedo = res.albedo[..., 0] if grey else res.albedo
     return PSResult(

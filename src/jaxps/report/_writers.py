@@ -1,6 +1,6 @@
-"""Writing results: 16-bit normal maps, albedo, height, PLY meshes, a preview figure.
+"""Writing results: 16-bit normal maps, albedo, height, PLY meshes, a preview image.
 
-OpenCV and matplotlib are imported by the functions that use them.
+OpenCV is imported by the functions that use it.
 """
 
 from __future__ import annotations
@@ -94,29 +94,47 @@ def write_json(path, data: dict) -> None:
         f.write("\n")
 
 
-def write_preview(path, normals, albedo, height, mask, title: str = "") -> None:
-    """A one-row figure: normal map, albedo and the height map shaded from the upper left."""
-    import matplotlib
+def write_preview(path, normals, albedo, height, mask, title: str = "", *,
+                  max_height: int = 480) -> None:
+    """A one-row PNG: normal map, albedo and the height map shaded from the upper left.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    Drawn with OpenCV rather than matplotlib (about 1 s less per `jaxps reconstruct` at 1 MP,
+    most of it importing matplotlib). Panels are scaled down to at most `max_height` rows;
+    pixels outside `mask` are white. `title` goes in a band above the panels.
+    """
+    import cv2
 
-    normals, mask = np.asarray(normals), np.asarray(mask, bool)
-    ls = matplotlib.colors.LightSource(azdeg=315, altdeg=45)
-    z = np.where(mask, height, np.nan)
-    shaded = ls.hillshade(np.nan_to_num(z, nan=float(np.nanmin(z)) if mask.any() else 0.0))
-    fig, axes = plt.subplots(1, 3, figsize=(12, 4.4), constrained_layout=True)
-    axes[0].imshow(np.where(mask[..., None], (normals + 1) / 2, 1).clip(0, 1))
-    axes[0].set_title("normals (RGB = xyz)")
-    alb = np.asarray(albedo)
-    top = np.percentile(alb[mask], 99.5) if mask.any() else 1
-    axes[1].imshow(np.clip(alb / (top or 1), 0, 1), cmap="gray" if alb.ndim == 2 else None)
-    axes[1].set_title("albedo")
-    axes[2].imshow(np.where(mask, shaded, 1), cmap="gray")
-    axes[2].set_title("height (shaded)")
-    for ax in axes:
-        ax.set_axis_off()
-    if title:
-        fig.suptitle(title)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    normals, mask = np.asarray(normals, np.float32), np.asarray(mask, bool)
+    h, w = mask.shape
+    f = min(1.0, max_height / h)
+    size = (max(1, round(w * f)), max(1, round(h * f)))
+
+    def small(img):
+        return cv2.resize(img, size, interpolation=cv2.INTER_AREA) if f < 1 else img
+
+    inside = small(mask.astype(np.float32)) > 0.5
+    rgb = np.clip((small(normals) + 1) / 2, 0, 1)
+    alb = np.asarray(albedo, np.float32)
+    top = float(np.percentile(alb[mask], 99.5)) if mask.any() else 1.0
+    alb = np.clip(small(alb) / (top or 1.0), 0, 1)
+    if alb.ndim == 2:
+        alb = np.repeat(alb[..., None], 3, axis=-1)
+    # Hillshade (Lambertian, light at azimuth 315, altitude 45 deg), as matplotlib's LightSource.
+    z = np.where(mask, height, np.nanmin(np.where(mask, height, np.inf)) if mask.any() else 0)
+    dz_dy, dz_dx = np.gradient(small(np.nan_to_num(np.asarray(z, np.float32))) * f)
+    az, alt = np.radians(90 - 315), np.radians(45)
+    shade = (-dz_dx * np.cos(az) * np.cos(alt) - dz_dy * np.sin(az) * np.cos(alt)
+             + np.sin(alt)) / np.sqrt(dz_dx**2 + dz_dy**2 + 1)
+    lo, hi = (float(shade[inside].min()), float(shade[inside].max())) if inside.any() else (0, 1)
+    shade = np.clip((shade - lo) / ((hi - lo) or 1.0), 0, 1)
+    panels = [rgb, alb, np.repeat(shade[..., None], 3, axis=-1)]
+    panels = [np.where(inside[..., None], p, 1.0) for p in panels]
+    gap = np.ones((size[1], 8, 3), np.float32)
+    row = np.concatenate([panels[0], gap, panels[1], gap, panels[2]], axis=1)
+    band = np.ones((28, row.shape[1], 3), np.float32)
+    labels = "normals (RGB = xyz) | albedo | height (shaded)"
+    cv2.putText(band, f"{title}   {labels}" if title else labels, (6, 19),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
+    image = np.round(np.concatenate([band, row]) * 255).astype(np.uint8)
+    if not cv2.imwrite(os.fspath(path), image[..., ::-1]):
+        raise OSError(f"could not write {path}")
