@@ -58,6 +58,8 @@ def demo_parser(sub) -> None:
     )
     p.add_argument("--out", default="jaxps-demo", help="output folder (default: jaxps-demo)")
     p.add_argument("--size", type=int, default=320, help="image height in pixels (default 320)")
+    p.add_argument("--width", type=int, default=None,
+                   help="image width in pixels (default 0.8 x --size)")
     p.add_argument("--noise", type=float, default=0.005,
                    help="Gaussian noise s.d. in [0, 1] units (default 0.005)")
     p.add_argument("--seed", type=int, default=0)

@@ -21,7 +21,7 @@ def run(args) -> int:
 
     frames_dir = os.path.join(args.out, "frames")
     os.makedirs(frames_dir, exist_ok=True)
-    surface = synthetic.face_like(args.size)
+    surface = synthetic.face_like(args.size, args.width)
     lights = synthetic.scanner_lights(20.0)
     scene = synthetic.render_scene(surface, lights, noise=args.noise,
                                    key=jax.random.key(args.seed))

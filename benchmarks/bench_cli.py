@@ -1,0 +1,120 @@
+"""End to end, as a user runs it: `jaxps reconstruct` in a fresh process, cold and warm.
+
+For each frame size, `jaxps demo` writes five 16-bit PNG frames, an ambient frame, a mask and
+lights.txt (not timed); then `jaxps reconstruct` runs on them twice, each in a new process:
+first with an empty compilation-cache folder (`JAXPS_CACHE_DIR`), then again with the folder
+the first run filled. Wall time is measured around the process; the per-stage times come from
+its summary.json, and the rest (start-up, imports, tracing, the summary) is wall minus stages.
+Also timed: `jaxps --help`, `python -c "import jaxps"` and `python -c "import jax"` (best of 3).
+
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_cli.py [--quick]
+    -> benchmarks/results/cli.json, cli.png
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import pathlib
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+
+try:
+    from benchmarks._common import RESULTS, environment, write_json
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import RESULTS, environment, write_json
+
+QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
+# (name, rows, columns): a 1.3 MP scanner frame and a Yale B frame.
+SIZES = [("192x168", 192, 168)] if QUICK else [("1280x1024", 1024, 1280), ("192x168", 192, 168)]
+
+
+def _command() -> list[str]:
+    """The `jaxps` console script beside this Python, else `python -m jaxps`."""
+    script = pathlib.Path(sys.executable).with_name("jaxps")
+    return [str(script)] if script.is_file() else [sys.executable, "-m", "jaxps"]
+
+
+def _wall(argv, env) -> float:
+    t0 = time.perf_counter()
+    subprocess.run(argv, env=env, check=True, capture_output=True, text=True)
+    return time.perf_counter() - t0
+
+
+def main():
+    env = dict(os.environ)
+    jaxps = _command()
+    res = {"command": " ".join(pathlib.Path(a).name for a in jaxps), "quick": QUICK,
+           "env": environment(), "start_up_s": {}, "reconstruct": {}}
+    res["env"]["OPENBLAS_NUM_THREADS"] = env.get("OPENBLAS_NUM_THREADS")
+    for name, argv in [("jaxps --help", [*jaxps, "--help"]),
+                       ("import jaxps", [sys.executable, "-c", "import jaxps"]),
+                       ("import jax", [sys.executable, "-c", "import jax"])]:
+        res["start_up_s"][name] = min(_wall(argv, env) for _ in range(3))
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = pathlib.Path(tmp)
+        for name, rows, cols in SIZES:
+            demo = tmp / f"demo_{name}"
+            subprocess.run([*jaxps, "demo", "--size", str(rows), "--width", str(cols),
+                            "--out", str(demo)], env={**env, "JAXPS_CACHE_DIR": "off"},
+                           check=True, capture_output=True)
+            frames = demo / "frames"
+            cache = tmp / f"cache_{name}"
+            runs = {}
+            for run in ("first (empty cache)", "second (warm cache)"):
+                out = tmp / f"out_{name}"
+                shutil.rmtree(out, ignore_errors=True)
+                argv = [*jaxps, "reconstruct", *sorted(str(p) for p in frames.glob("frame_*.png")),
+                        "--lights", str(frames / "lights.txt"),
+                        "--ambient", str(frames / "ambient.png"),
+                        "--mask", str(frames / "mask.png"), "--out", str(out)]
+                wall = _wall(argv, {**env, "JAXPS_CACHE_DIR": str(cache)})
+                stages = json.loads((out / "summary.json").read_text())["timings_s"]
+                runs[run] = {"wall_s": wall, "stages_s": stages,
+                             "start_up_and_rest_s": wall - sum(stages.values()),
+                             "outputs": sorted(p.name for p in out.iterdir())}
+            res["reconstruct"][name] = {"frames": 5, "rows": rows, "columns": cols, **runs}
+    path = write_json("cli", res)
+    _chart(res, path.with_suffix(".png"))
+    for name, runs in res["reconstruct"].items():
+        for run, r in runs.items():
+            if isinstance(r, dict):
+                print(f"reconstruct {name:>9}, {run:<20} {r['wall_s']:6.2f} s wall  "
+                      + ", ".join(f"{k} {v:.3f}" for k, v in r["stages_s"].items())
+                      + f", start-up and rest {r['start_up_and_rest_s']:.2f}")
+    for name, t in res["start_up_s"].items():
+        print(f"{name:>14}: {t:.3f} s")
+
+
+def _chart(res, path):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    bars = [(f"{name}\n{run.split(' ')[0]} run", r) for name, runs in res["reconstruct"].items()
+            for run, r in runs.items() if isinstance(r, dict)]
+    stages = list(bars[0][1]["stages_s"]) + ["start-up and rest"]
+    fig, ax = plt.subplots(figsize=(8, 0.6 * len(bars) + 1.6), constrained_layout=True)
+    for i, (_, r) in enumerate(bars):
+        left = 0.0
+        for j, stage in enumerate(stages):
+            v = r["stages_s"].get(stage, r["start_up_and_rest_s"])
+            ax.barh(i, v, left=left, color=f"C{j}", label=stage if i == 0 else None)
+            left += v
+        ax.text(left + 0.03, i, f"{r['wall_s']:.2f} s", va="center", fontsize=8)
+    ax.set_yticks(range(len(bars)), [b[0] for b in bars], fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("wall-clock seconds, fresh process")
+    ax.set_title("jaxps reconstruct, five 16-bit frames + ambient + mask")
+    ax.legend(fontsize=7, loc="lower right")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+if __name__ == "__main__":
+    main()
