@@ -219,21 +219,22 @@ def integrability_map(
 
 
 @jax.jit
-def _frankot_chellappa(p, q, mask):
-    h, w = p.shape
-    dzdc, dzdr = p, -q
-    wc = 2 * jnp.pi * jnp.fft.rfftfreq(w).astype(p.dtype)
-    wr = 2 * jnp.pi * jnp.fft.fftfreq(h).astype(p.dtype)
-    wr, wc = wr[:, None], wc[None, :]
-    fc = jnp.fft.rfft2(dzdc)
-    fr = jnp.fft.rfft2(dzdr)
-    denom = jnp.where((wc == 0) & (wr == 0), 1, wc**2 + wr**2)
-    ctype = fc.dtype
-    z_hat = -1j * (wc.astype(ctype) * fc + wr.astype(ctype) * fr) / denom.astype(ctype)
-    z_hat = z_hat.at[0, 0].set(0)
-    z = jnp.fft.irfft2(z_hat, s=(h, w)).astype(p.dtype)
-    offset = jnp.sum(jnp.where(mask, z, 0)) / jnp.maximum(jnp.sum(mask), 1).astype(z.dtype)
-    return z - offset
+def _frankot_chellappa(dzdc, dzdr, mask, scale=1.0):
+    """Least-squares periodic height from its column and row steps, mean 0 over `mask`, times
+    `scale`. Both spectra scale and the -1j are one pass over the half spectrum (no full-size
+    temporaries: this runs at about the speed of scipy.fft, see benchmarks/bench_core.py)."""
+    h, w = dzdc.shape
+    dt = dzdc.dtype
+    wc = 2 * jnp.pi * jnp.fft.rfftfreq(w).astype(dt)[None, :]
+    wr = 2 * jnp.pi * jnp.fft.fftfreq(h).astype(dt)[:, None]
+    fc, fr = jnp.fft.rfft2(dzdc), jnp.fft.rfft2(dzdr)
+    d = wc * wc + wr * wr
+    factor = jnp.where(d > 0, jnp.asarray(scale, dt) / jnp.where(d > 0, d, 1), 0)  # DC -> 0
+    re = wc * fc.real + wr * fr.real
+    im = wc * fc.imag + wr * fr.imag
+    z = jnp.fft.irfft2(jax.lax.complex(im * factor, -re * factor), s=(h, w))
+    z = z.astype(dt)
+    return z - _mean_over(z, mask)
 
 
 def _crop(valid):
@@ -269,11 +270,20 @@ def _to_height(eta, valid, cam, pixel_size, everywhere):
 
 @jax.jit
 def _fc_orthographic(normals, mask, pixel_size):
-    """`integrate(method="fc")` without intrinsics: height and whether any normal was valid."""
-    n, valid = _unit_normals(normals, mask)
-    p, q = gradients_from_normals(n, mask)
-    eta = _frankot_chellappa(p, q, mask).astype(normals.dtype)
-    return _to_height(eta, mask, None, pixel_size, True), jnp.any(valid)
+    """`integrate(method="fc")` without intrinsics: height and whether any normal was valid.
+
+    The same as `_unit_normals` + `gradients_from_normals` + `_frankot_chellappa`, written on
+    the three normal planes so that XLA fuses the slopes into one pass (a reduction over the
+    length-3 axis or `.at[].set` would each cost a pass over the image).
+    """
+    nx, ny, nz = normals[..., 0], normals[..., 1], normals[..., 2]
+    sq = nx * nx + ny * ny + nz * nz
+    ok = mask & jnp.isfinite(sq) & (sq > 1e-12)
+    inv = jax.lax.rsqrt(jnp.where(ok, sq, 1))
+    slope = 1 / jnp.maximum(nz * inv, _MIN_NZ)
+    dzdc = jnp.where(ok, -nx * inv * slope, 0)
+    dzdr = jnp.where(ok, ny * inv * slope, 0)
+    return _frankot_chellappa(dzdc, dzdr, mask, pixel_size), jnp.any(ok)
 
 
 def _auto_choice(n, valid, cam):
@@ -403,7 +413,7 @@ def integrate(
             p, q = gradients_from_normals(n, mask)
         else:
             p, q = gc, -gr
-        eta = _frankot_chellappa(p, q, mask)
+        eta = _frankot_chellappa(p, -q, mask)
     elif method == "dct":
         eta = dct_poisson(gc, gr)
     else:
