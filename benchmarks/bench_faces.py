@@ -129,6 +129,70 @@ def cand_semi(prior_weight):
     return run
 
 
+def _curl_ratio(images, lights, e, mask):
+    """Curl energy of the L2 normals' gradient field over its variance (numpy).
+
+    Normalised so that scaling the depth (a flattening) leaves it unchanged; dividing by the
+    variance rather than the energy of the gradients also keeps a planar tilt from lowering it.
+    """
+    n = np.asarray(jaxps.photometric_stereo(images / e[:, None, None], lights).normals)
+    nz = np.maximum(n[..., 2], 1e-3)
+    p, q = -n[..., 0] / nz, -n[..., 1] / nz
+    v = mask & (n[..., 2] > 0.3)
+    gh, gv = (p[:, 1:] + p[:, :-1]) / 2, -(q[1:, :] + q[:-1, :]) / 2
+    loop = gh[:-1, :] + gv[:, 1:] - gh[1:, :] - gv[:, :-1]
+    inside = v[:-1, :-1] & v[1:, :-1] & v[:-1, 1:] & v[1:, 1:]
+    return float(np.mean(loop[inside] ** 2) / (np.var(p[v]) + np.var(q[v])))
+
+
+def cand_integrability(images, lights, ctx):
+    """K-1 free log-intensities minimising `_curl_ratio` from the frontal start (Nelder-Mead,
+    at most 150 evaluations, steps within +-0.2 of the start)."""
+    import scipy.optimize
+
+    from jaxps.acquisition import mask_from_intensity
+
+    e0 = np.asarray(jaxps.intensity_estimate(images, lights, method="frontal"), np.float64)
+    mask = mask_from_intensity(np.asarray(images))
+
+    def intens(x):
+        e = e0 * np.exp(np.concatenate([[0.0], np.clip(x, -0.2, 0.2)]))
+        return jnp.asarray(e / np.exp(np.mean(np.log(e))), images.dtype)
+
+    sol = scipy.optimize.minimize(lambda x: _curl_ratio(images, lights, intens(x), mask),
+                                  np.zeros(len(e0) - 1), method="Nelder-Mead",
+                                  options={"maxfev": 150, "initial_simplex": None})
+    res, info = _divide_and_solve(images, lights, intens(sol.x))
+    return res, {**info, "converged": bool(sol.success), "evaluations": int(sol.nfev)}
+
+
+def cand_shape_prior(images, lights, ctx):
+    """Leave-one-subject-out face prior: each frame's mean divided by the mean that the OTHER
+    subjects' reference faces (normals, albedo; Lambert with attached shadows) give under the
+    same light, geometric mean over those subjects."""
+    ratios = []
+    for normals, albedo in ctx["others"]:
+        shade = jaxps.render_lambertian(normals, albedo, lights)
+        ratios.append(np.log(np.asarray(shade, np.float64).reshape(len(lights), -1).mean(1)))
+    expected = np.exp(np.mean(ratios, axis=0))
+    means = np.asarray(images, np.float64).reshape(len(lights), -1).mean(1)
+    e = means / expected
+    return _divide_and_solve(images, lights, e / np.exp(np.mean(np.log(e))))
+
+
+def cand_default_pipeline(images, lights, ctx):
+    """What `load_capture(..., yale_names=True, ambient=..., check_quality=True)` and then
+    `photometric_stereo` give with every other option at its default."""
+    from jaxps.acquisition import load_capture
+
+    cap = load_capture(ctx["paths"], yale_names=True, ambient=ctx["ambient"],
+                       check_quality=True)
+    res = jaxps.photometric_stereo(cap.images, cap.lights, mask=cap.mask,
+                                   sample_mask=~cap.saturated)
+    return res, {"intensities": np.round(1 / cap.gains / np.exp(np.mean(np.log(1 / cap.gains))),
+                                         4).tolist(), "dropped": list(cap.dropped)}
+
+
 def cand_oracle(images, lights, ctx):
     """The reference's own intensities for these lights (not available to a pipeline)."""
     return _divide_and_solve(images, lights, ctx["oracle"])
@@ -139,13 +203,37 @@ CANDIDATES = {
     "mean": cand_estimate("mean"),
     "frontal": cand_estimate("frontal"),
     "semi_calibrated": cand_semi(0.0),
+    "semi_calibrated_prior0.1": cand_semi(0.1),
+    "semi_calibrated_prior0.3": cand_semi(0.3),
     "semi_calibrated_prior1": cand_semi(1.0),
+    "integrability": cand_integrability,
+    "shape_prior_loo": cand_shape_prior,
+    "default_load_capture": cand_default_pipeline,
     "oracle_reference_intensities": cand_oracle,
 }
+# The candidates a default may be chosen from (leave-one-subject-out, in `loo_choice`): the
+# per-capture estimates that need nothing but the capture.
+CHOOSABLE = ("none", "mean", "frontal", "semi_calibrated", "semi_calibrated_prior0.1",
+             "semi_calibrated_prior0.3", "semi_calibrated_prior1", "integrability")
 
 
-def run_subject(subject, frames, ctx_extra):
-    keys, dropped, ref, halves, ok = references(frames)
+def loo_choice(subjects: dict) -> dict:
+    """For each held-out subject: the `CHOOSABLE` candidate with the lowest median (over the
+    other subjects) of the per-subject median error, and its error on the held-out one."""
+    out = {}
+    for held in subjects:
+        rest = [r for s, r in subjects.items() if s != held]
+        scores = {c: float(np.median([r["candidates"][c]["median_deg"] for r in rest]))
+                  for c in CHOOSABLE}
+        best = min(scores, key=scores.get)
+        out[held] = {"chosen": best, "score_on_others_deg": scores[best],
+                     "held_out_median_deg": subjects[held]["candidates"][best]["median_deg"],
+                     "floor_median_deg": subjects[held]["floor"]["median_deg"]}
+    return out
+
+
+def run_subject(subject, frames, refs, ctx_extra):
+    keys, dropped, ref, halves, ok = refs
     floor = jaxps.evaluate.angular_stats(halves[0].normals, halves[1].normals, mask=ok)
     five, five_dropped = clean(frames, list(CROSS))
     images = jnp.asarray(np.stack([frames[k] for k in five]))
@@ -210,8 +298,14 @@ def main(argv=None):
                       + " ".join(sys.argv[1:] if argv is None else argv),
            "environment": environment(), "lights": [f"{a:+d},{e:+d}" for a, e in CROSS],
            "max_angle_deg": MAX_ANGLE, "subjects": {}}
+    refs = {s: references(data[s]) for s in args.subjects}
     for subject in args.subjects:
-        row, maps, ok, floor_map = run_subject(subject, data[subject], {})
+        folder = data_dir() / "yaleb" / subject
+        ctx = {"others": [(refs[o][2].normals, refs[o][2].albedo * refs[o][4])
+                          for o in args.subjects if o != subject],
+               "paths": [folder / f"{subject}_P00A{a:+04d}E{e:+03d}.pgm" for a, e in CROSS],
+               "ambient": folder / f"{subject}_P00_Ambient.pgm"}
+        row, maps, ok, floor_map = run_subject(subject, data[subject], refs[subject], ctx)
         out["subjects"][subject] = row
         if subject == args.figure_subject:
             plot(subject, maps, ok, floor_map, RESULTS / "faces.png")
@@ -221,6 +315,11 @@ def main(argv=None):
         name: float(np.median([r["candidates"][name]["median_deg"]
                                for r in out["subjects"].values()]))
         for name in CANDIDATES}
+    out["loo"] = loo_choice(out["subjects"])
+    out["loo_median_over_subjects_deg"] = float(np.median(
+        [v["held_out_median_deg"] for v in out["loo"].values()]))
+    print("leave-one-subject-out:", {k: (v["chosen"], round(v["held_out_median_deg"], 2))
+                                     for k, v in out["loo"].items()})
     out["seconds"] = time.perf_counter() - t0
     print("median over subjects:", {k: round(v, 2) for k, v in
                                     out["median_over_subjects_deg"].items()},
