@@ -16,7 +16,7 @@ import numpy as np
 from ..acquisition import check_frames, drop_flagged, load_capture
 from ..core import Status, status_counts
 from ..integration import integrate
-from ..ps import PSResult, photometric_stereo
+from ..ps import INTENSITY_METHODS, PSResult, photometric_stereo
 from ..report import lambertian_check_plot, write_report
 from ..report._writers import write_albedo, write_json, write_normal_map, write_ply, write_preview
 from ._args import add_light_args
@@ -40,8 +40,14 @@ def add_parser(sub) -> None:
     add_light_args(p)
     p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
     p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
-    p.add_argument("--equalize", action="store_true",
-                   help="equalise mean intensity across frames (four-source scanner)")
+    p.add_argument("--intensities", default="frontal", choices=INTENSITY_METHODS,
+                   help="per-frame light intensity estimate divided out before solving "
+                   "(default frontal: mean equalisation corrected for each light's obliquity; "
+                   "see load_capture)")
+    p.add_argument("--no-equalize", dest="intensities", action="store_const", const="none",
+                   help="use the frames as read (same as --intensities none)")
+    p.add_argument("--equalize", dest="intensities", action="store_const", const="mean",
+                   help="plain mean equalisation (same as --intensities mean)")
     p.add_argument("--shadow-threshold", type=float, default=None,
                    help="drop samples below this intensity from each pixel's solve")
     p.add_argument("--method", default="l2", help="photometric-stereo method (jaxps.PS_METHODS)")
@@ -84,7 +90,7 @@ def reconstruct(
     ambient=None,
     mask=None,
     crop_face: bool = False,
-    equalize: bool = False,
+    intensities: str = "frontal",
     shadow_threshold: float | None = None,
     method: str = "l2",
     integration: str = "fc",
@@ -94,7 +100,8 @@ def reconstruct(
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
     `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
-    `"dropped_frames"` in the summary)."""
+    `"dropped_frames"` in the summary). `intensities`: see `load_capture` (the summary's
+    `"intensities"` holds the method and the per-frame estimates, `"gains"` their inverses)."""
     import jax
 
     if len(frames) == 1 and os.path.isdir(frames[0]):
@@ -102,7 +109,8 @@ def reconstruct(
     stages = _Stages(["load", "solve", "integrate", "write"])
     try:
         cap = stages.run("load frames", load_capture, frames, lights=lights,
-                         yale_names=yale_names, ambient=ambient, mask=mask, equalize=equalize,
+                         yale_names=yale_names, ambient=ambient, mask=mask,
+                         intensities=intensities,
                          crop_face=crop_face, check_quality=check_quality)
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
@@ -142,6 +150,8 @@ def reconstruct(
                  "channels": int(cap.images.shape[3]) if cap.images.ndim == 4 else 1},
         "crop": cap.crop,
         "gains": cap.gains.round(6).tolist(),
+        "intensities": {"method": cap.intensity_method,
+                        "per_frame": np.asarray(cap.intensities).round(6).tolist()},
         "method": method,
         "integration": integration,
         "mask_pixels": int(cap.mask.sum()),
@@ -167,7 +177,8 @@ def run(args) -> int:
         return _run_many(args)
     summary = reconstruct(
         args.frames, args.out, lights=args.lights, yale_names=args.yale_names,
-        ambient=args.ambient, mask=args.mask, crop_face=args.crop_face, equalize=args.equalize,
+        ambient=args.ambient, mask=args.mask, crop_face=args.crop_face,
+        intensities=args.intensities,
         shadow_threshold=args.shadow_threshold, method=args.method,
         integration=args.integration, report=args.report, check_quality=args.check_quality,
     )
@@ -255,7 +266,8 @@ def _run_many(args) -> int:
     `OUT/<folder>/normals.png`, `albedo.png`, `status.npy`, prints a summary table and writes
     `OUT/summary.json`. Returns 1 if any capture failed (named in the table), else 0."""
     load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
-                        mask=args.mask, crop_face=args.crop_face, equalize=args.equalize)
+                        mask=args.mask, crop_face=args.crop_face,
+                        intensities=args.intensities)
     results, rows = reconstruct_many(args.frames, method=args.method,
                                      check_quality=args.check_quality, **load_options)
     os.makedirs(args.out, exist_ok=True)
