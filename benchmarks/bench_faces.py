@@ -35,10 +35,10 @@ import numpy as np
 import jaxps
 
 try:
-    from benchmarks._common import ROOT, RESULTS, data_dir, environment, time_calls, write_json
+    from benchmarks._common import RESULTS, ROOT, data_dir, environment, write_json
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import ROOT, RESULTS, data_dir, environment, time_calls, write_json
+    from benchmarks._common import RESULTS, ROOT, data_dir, environment, write_json
 
 SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
 CROSS = ((0, 0), (25, 0), (-25, 0), (0, 20), (0, -20))
@@ -56,7 +56,7 @@ def load_subject(subject: str) -> dict:
     for path in sorted(folder.glob(f"{subject}_P00A*.pgm")):
         angles = jaxps.parse_yale_name(path.name)
         if angles is not None:
-            frames[tuple(int(round(a)) for a in angles)] = subtract_ambient(read_image(path)[None], ambient)[0]
+            frames[tuple(round(a) for a in angles)] = subtract_ambient(read_image(path)[None], ambient)[0]
     return frames
 
 

@@ -16,10 +16,10 @@ from typing import NamedTuple
 import numpy as np
 
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
+from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ._face import crop, detect_face
 from ._files import PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
-from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ._stack import mask_from_intensity, subtract_ambient
 
 __all__ = ["Capture", "load_capture"]
