@@ -84,9 +84,48 @@ def test_ambient_subtraction_clips_and_saturation_from_raw(tmp_path):
         paths.append(tmp_path / f"f{k}.pgm")
         cv2.imwrite(str(paths[-1]), f)
     cv2.imwrite(str(tmp_path / "amb.pgm"), np.full((3, 3), 50, np.uint8))
-    cap = acq.load_capture(paths, lights=np.eye(3), ambient=tmp_path / "amb.pgm")
+    cap = acq.load_capture(paths, lights=np.eye(3), ambient=tmp_path / "amb.pgm",
+                           intensities="none")
     np.testing.assert_allclose(cap.images[:, 0, 0], [0, 50 / 255, 205 / 255], rtol=1e-6)
     np.testing.assert_array_equal(cap.saturated[:, 0, 0], [False, False, True])
+    assert cap.intensity_method == "none" and np.all(cap.gains == 1)
+    # The default estimate cannot use a black frame: it falls back to "none", says so in the
+    # capture and on the "jaxps" logger, and still loads.
+    cap = acq.load_capture(paths, lights=np.eye(3), ambient=tmp_path / "amb.pgm")
+    assert cap.intensity_method == "none" and np.all(cap.gains == 1)
+
+
+def test_load_capture_divides_out_frame_intensities(tmp_path):
+    """Frames of a sphere cap (mean normal on the view axis, no shadows) under flashes of known
+    strength: the default ("frontal") recovers them, "none" keeps the frames as read, and the
+    capture reports what was used."""
+    from helpers import sphere_scene
+
+    scene = sphere_scene(48)
+    strength = np.array([1.0, 0.8, 1.1, 1.05, 0.9])
+    frames = np.asarray(scene.images) * strength[:, None, None] * 0.8
+    paths = []
+    for k, f in enumerate(frames):
+        paths.append(tmp_path / f"f{k}.png")
+        cv2.imwrite(str(paths[-1]), np.round(np.clip(f, 0, 1) * 65535).astype(np.uint16))
+    lights = np.asarray(scene.lights)
+    plain = acq.load_capture(paths, lights=lights, intensities="none", linearize="none")
+    cap = acq.load_capture(paths, lights=lights, linearize="none")
+    assert cap.intensity_method == "frontal"
+    # The estimate scales with each flash (what the scene alone gives, times the strength).
+    alone = np.asarray(jaxps.intensity_estimate(scene.images, lights, method="frontal"))
+    e = strength * alone / np.exp(np.mean(np.log(strength * alone)))
+    np.testing.assert_allclose(cap.intensities, e, rtol=2e-3)
+    np.testing.assert_allclose(cap.gains, 1 / cap.intensities, rtol=1e-6)
+    np.testing.assert_allclose(cap.images * cap.intensities[:, None, None], plain.images,
+                               rtol=1e-5, atol=1e-7)
+    truth = scene.normals
+    err = {name: jaxps.evaluate.angular_stats(
+        jaxps.photometric_stereo(c.images, c.lights, mask=scene.mask).normals, truth,
+        mask=scene.mask)["median_deg"] for name, c in (("plain", plain), ("default", cap))}
+    assert err["plain"] > 4 and err["default"] < 0.6 * err["plain"]
+    with pytest.raises(ValueError, match="intensities"):
+        acq.load_capture(paths, lights=lights, intensities="median")
 
 
 def test_equalize_mean():
@@ -127,7 +166,7 @@ def test_face_detection_on_padded_tight_crop(data):
 def test_psm_capture_colour_linear_with_mask(data):
     folder = data / "psm" / "cat"
     cap = acq.load_capture(folder, lights=data / "psm" / "lights.txt",
-                           mask=folder / "cat.mask.png")
+                           mask=folder / "cat.mask.png", intensities="none")
     assert cap.images.shape == (12, 340, 512, 3)
     assert cap.names[:3] == ("cat.0.png", "cat.1.png", "cat.2.png")
     assert cap.names[-1] == "cat.11.png"

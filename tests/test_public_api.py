@@ -28,6 +28,10 @@ ADDED = {
                           "check_file", "check_frames", "drop_flagged", "estimate_shifts",
                           "load_psm", "register_frames", "shift_frames"],
 }
+# Changed on purpose since the snapshot (issue 17; the snapshot entries were rewritten):
+# `load_capture(equalize=False)` and `reconstruct(equalize=False)` became
+# `intensities="frontal"` (per-frame intensities estimated and divided out by default), and
+# `Capture` gained `intensities` and `intensity_method`.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -1,12 +1,14 @@
 """A capture: `load_capture` runs the adapter's steps in order on one capture's files.
 
-Frames, lights, ambient subtraction, quality screening, mask, face crop, equalisation; each step
+Frames, lights, ambient subtraction, quality screening, mask, face crop, per-frame light
+intensities (estimated and divided out, `"frontal"` by default); each step
 is a function of its own in this package, and the result is a `Capture` of numpy arrays that the
 jitted core takes as they are.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -14,10 +16,11 @@ from typing import NamedTuple
 import numpy as np
 
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
+from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ._face import crop, detect_face
 from ._files import PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
-from ._stack import equalize_mean, mask_from_intensity, subtract_ambient
+from ._stack import mask_from_intensity, subtract_ambient
 
 __all__ = ["Capture", "load_capture"]
 
@@ -32,8 +35,12 @@ class Capture(NamedTuple):
       ambient subtraction hid it); pass `sample_mask=~saturated` to the solver.
     - `names`: the frame file names, in order.
     - `crop`: `(top, left, height, width)` of the face crop in the original frame, or None.
-    - `gains`: `(K,)` factors applied by mean equalisation (ones when not equalised).
+    - `gains`: `(K,)` factors each frame was multiplied by to equalise its light intensity
+      (`1 / intensities`; ones with `intensities="none"`).
     - `dropped`: the names of the frames `check_quality=True` dropped, in order (else empty).
+    - `intensities`: `(K,)` the per-frame light intensities estimated (geometric mean 1).
+    - `intensity_method`: the estimate used (`"none"`, `"mean"`, `"frontal"`,
+      `"semi_calibrated"`).
     """
 
     images: np.ndarray
@@ -44,6 +51,8 @@ class Capture(NamedTuple):
     crop: tuple[int, int, int, int] | None
     gains: np.ndarray
     dropped: tuple[str, ...] = ()
+    intensities: np.ndarray | None = None
+    intensity_method: str = "none"
 
 
 def load_capture(
@@ -53,12 +62,12 @@ def load_capture(
     yale_names: bool = False,
     ambient: PathLike | None = None,
     mask: PathLike | np.ndarray | str | None = None,
-    equalize: bool = False,
+    intensities: str = "frontal",
     crop_face: bool = False,
     linearize: str = "auto",
     check_quality: bool = False,
 ) -> Capture:
-    """Load a capture: frames, lights, ambient subtraction, equalisation, face crop, mask.
+    """Load a capture: frames, lights, ambient subtraction, face crop, mask, intensities.
 
     **Arguments:**
     - `frames`: a folder (see `list_frames`) or a list of frame files.
@@ -67,7 +76,13 @@ def load_capture(
     - `ambient`: the ambient-only control frame, subtracted from every frame and clipped at 0.
     - `mask`: a mask image path, a `(H, W)` bool array, `"auto"` (Otsu on the mean image), or
       None (every pixel).
-    - `equalize`: scale frames to equal mean intensity over the mask (`equalize_mean`).
+    - `intensities`: how each frame's flash strength is estimated and divided out, one of
+      `jaxps.INTENSITY_METHODS` (see `jaxps.intensity_estimate`, estimated over the mask):
+      `"frontal"` (default: mean equalisation corrected for each light's obliquity; `"mean"`
+      when there are no lights), `"mean"` (the face scanners' mean equalisation),
+      `"semi_calibrated"` (the joint fit, K >= 4) or `"none"` (frames as read). On five-light
+      Yale B faces against a semi-calibrated 29-light reference (`benchmarks/bench_faces.py`),
+      `"none"` costs about 8 degrees of median normal error; see docs/captures.md.
     - `crop_face`: crop to the face found by `detect_face` in the mean frame.
     - `linearize`: see `read_image`.
     - `check_quality`: run `jaxps.check_frames` on the ambient-subtracted frames and drop the
@@ -137,8 +152,29 @@ def load_capture(
     if mask_array is None:
         mask_array = (mask_from_intensity(images) if mask == "auto"
                       else np.ones(images.shape[1:3], bool))
-    gains = np.ones(len(images), np.float32)
-    if equalize:
-        images, gains = equalize_mean(images, mask=mask_array)
+    method = intensities
+    if method not in INTENSITY_METHODS:
+        raise ValueError(f"intensities must be one of {INTENSITY_METHODS}, got {method!r}")
+    if light_array is None and method in ("frontal", "semi_calibrated"):
+        if method == "semi_calibrated":
+            raise ValueError("intensities='semi_calibrated' needs lights")
+        method = "mean"
+    e = np.ones(len(images), np.float32)
+    if method != "none":
+        grey = images if images.ndim == 3 else images.mean(axis=-1)
+        options = {"sample_mask": ~saturated} if method == "semi_calibrated" else {}
+        # "mean" does not look at the lights: without any, give it view-axis placeholders.
+        lights_for = (np.tile(np.float32([0, 0, 1]), (len(images), 1)) if light_array is None
+                      else light_array)
+        try:
+            e = np.asarray(intensity_estimate(grey, lights_for, mask=mask_array, method=method,
+                                              **options), np.float32)
+        except ValueError as err:  # a black frame: keep the capture, say so
+            logging.getLogger("jaxps").warning(
+                "load_capture: intensities=%r failed (%s); frames used as read", method, err)
+            e, method = np.ones(len(images), np.float32), "none"
+        shape = (-1,) + (1,) * (images.ndim - 1)
+        images = images / e.reshape(shape)
     return Capture(np.ascontiguousarray(images, dtype=np.float32), light_array, mask_array,
-                   saturated, names, box, gains, tuple(n for n in given if n not in names))
+                   saturated, names, box, (1 / e).astype(np.float32),
+                   tuple(n for n in given if n not in names), e, method)

@@ -6,6 +6,10 @@ a subcommand's module (named by `module` in the parsed arguments) only to run it
 
 from __future__ import annotations
 
+# jaxps.INTENSITY_METHODS, repeated so that building the parser imports no jax (a test checks
+# that the two agree).
+INTENSITY_METHODS = ("none", "mean", "frontal", "semi_calibrated")
+
 __all__ = ["add_light_args", "demo_parser", "reconstruct_parser", "relight_parser",
            "report_parser"]
 
@@ -35,8 +39,14 @@ def reconstruct_parser(sub) -> None:
     add_light_args(p)
     p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
     p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
-    p.add_argument("--equalize", action="store_true",
-                   help="equalise mean intensity across frames (four-source scanner)")
+    p.add_argument("--intensities", default="frontal", choices=INTENSITY_METHODS,
+                   help="per-frame light intensity estimate divided out before solving "
+                   "(default frontal: mean equalisation corrected for each light's obliquity; "
+                   "see load_capture)")
+    p.add_argument("--no-equalize", dest="intensities", action="store_const", const="none",
+                   help="use the frames as read (same as --intensities none)")
+    p.add_argument("--equalize", dest="intensities", action="store_const", const="mean",
+                   help="plain mean equalisation (same as --intensities mean)")
     p.add_argument("--shadow-threshold", type=float, default=None,
                    help="drop samples below this intensity from each pixel's solve")
     p.add_argument("--method", default="l2", help="photometric-stereo method (jaxps.PS_METHODS)")

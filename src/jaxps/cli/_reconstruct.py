@@ -53,7 +53,7 @@ def reconstruct(
     ambient=None,
     mask=None,
     crop_face: bool = False,
-    equalize: bool = False,
+    intensities: str = "frontal",
     shadow_threshold: float | None = None,
     method: str = "l2",
     integration: str = "fc",
@@ -63,7 +63,8 @@ def reconstruct(
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
     `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
-    `"dropped_frames"` in the summary)."""
+    `"dropped_frames"` in the summary). `intensities`: see `load_capture` (the summary's
+    `"intensities"` holds the method and the per-frame estimates, `"gains"` their inverses)."""
     import jax
 
     if len(frames) == 1 and os.path.isdir(frames[0]):
@@ -71,7 +72,8 @@ def reconstruct(
     stages = _Stages(["load", "solve", "integrate", "write"])
     try:
         cap = stages.run("load frames", load_capture, frames, lights=lights,
-                         yale_names=yale_names, ambient=ambient, mask=mask, equalize=equalize,
+                         yale_names=yale_names, ambient=ambient, mask=mask,
+                         intensities=intensities,
                          crop_face=crop_face, check_quality=check_quality)
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
@@ -111,6 +113,8 @@ def reconstruct(
                  "channels": int(cap.images.shape[3]) if cap.images.ndim == 4 else 1},
         "crop": cap.crop,
         "gains": cap.gains.round(6).tolist(),
+        "intensities": {"method": cap.intensity_method,
+                        "per_frame": np.asarray(cap.intensities).round(6).tolist()},
         "method": method,
         "integration": integration,
         "mask_pixels": int(cap.mask.sum()),
@@ -138,7 +142,8 @@ def run(args) -> int:
         return _run_many(args)
     summary = reconstruct(
         args.frames, args.out, lights=args.lights, yale_names=args.yale_names,
-        ambient=args.ambient, mask=args.mask, crop_face=args.crop_face, equalize=args.equalize,
+        ambient=args.ambient, mask=args.mask, crop_face=args.crop_face,
+        intensities=args.intensities,
         shadow_threshold=args.shadow_threshold, method=args.method,
         integration=args.integration, report=args.report, check_quality=args.check_quality,
     )
@@ -226,7 +231,8 @@ def _run_many(args) -> int:
     `OUT/<folder>/normals.png`, `albedo.png`, `status.npy`, prints a summary table and writes
     `OUT/summary.json`. Returns 1 if any capture failed (named in the table), else 0."""
     load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
-                        mask=args.mask, crop_face=args.crop_face, equalize=args.equalize)
+                        mask=args.mask, crop_face=args.crop_face,
+                        intensities=args.intensities)
     results, rows = reconstruct_many(args.frames, method=args.method,
                                      check_quality=args.check_quality, **load_options)
     os.makedirs(args.out, exist_ok=True)

@@ -37,7 +37,6 @@ import numpy as np
 import optimistix as optx
 
 from ..core._linalg import REL_DET_MIN, solve3
-from ..core._status import Status
 from ._l2 import PSResult, ps_l2
 
 __all__ = ["ps_semi_calibrated"]
@@ -94,6 +93,11 @@ def _frontal(grey, w, lights):
     return _geo_normalise(e), jnp.sum(common) > 0
 
 
+def _objective(x, args):
+    r = _residuals(x, args)
+    return jnp.sum(r * r)
+
+
 @eqx.filter_jit
 def _fit_intensities(images, lights, mask, sample_mask, thresholds, stride, solver, max_steps,
                      prior_weight):
@@ -108,17 +112,36 @@ def _fit_intensities(images, lights, mask, sample_mask, thresholds, stride, solv
     prior_scale = jnp.sqrt(jnp.asarray(prior_weight, grey.dtype))
     log_e0 = jnp.log(e0)
     x0 = (log_e0 - log_e0[0])[1:]
-    sol = optx.least_squares(
-        _residuals, solver, x0,
-        args=(grey, w, lights, log_e0, prior_scale, data_scale),
-        max_steps=max_steps, throw=False,
-    )
+    args = (grey, w, lights, log_e0, prior_scale, data_scale)
+    sol = optx.least_squares(_residuals, solver, x0, args=args, max_steps=max_steps,
+                             throw=False)
     log_e = jnp.concatenate([jnp.zeros((1,), x0.dtype), sol.value])
     e = _geo_normalise(jnp.exp(log_e - jnp.mean(log_e)))
-    finite = jnp.all(jnp.isfinite(e)) & jnp.all(e > 0)
-    converged = (sol.result == optx.RESULTS.successful) & finite & have_common
-    e = jnp.where(finite, e, e0)
-    return e, e0, converged, sol.stats["num_steps"]
+    start_cost, end_cost = _objective(x0, args), _objective(sol.value, args)
+    # Usable: finite and no worse than the closed-form start. A fit that stopped at its step
+    # limit but lowered the objective is kept (its pixels are solved as usual; `converged`
+    # says it stopped early); anything else falls back to the start.
+    usable = (jnp.all(jnp.isfinite(e)) & jnp.all(e > 0) & jnp.isfinite(end_cost)
+              & (end_cost <= start_cost))
+    converged = (sol.result == optx.RESULTS.successful) & usable & have_common
+    e = jnp.where(usable, e, e0)
+    costs = jnp.stack([start_cost, jnp.where(usable, end_cost, start_cost)])
+    return e, e0, converged, ~usable | ~have_common, sol.stats["num_steps"], costs
+
+
+def _default_solver(dtype) -> optx.LevenbergMarquardt:
+    """The intensity fit's default: Levenberg–Marquardt stopping when a step changes the
+    log-intensities and the objective by less than `rtol` (relative) + `atol`.
+
+    The tolerances follow the dtype: the objective is a sum over up to ~65k pixels times K
+    frames, whose float32 rounding (~1e-6 relative) is above a 1e-6 test, so a float32 fit at
+    the optimum kept stepping to its limit (a 29-light face: 100 steps, not converged, at the
+    intensities it had reached in ~20). 1e-4 is 0.01% of an intensity, far below what the
+    normals can feel.
+    """
+    if jnp.finfo(dtype).bits <= 32:
+        return optx.LevenbergMarquardt(rtol=1e-4, atol=1e-6)
+    return optx.LevenbergMarquardt(rtol=1e-8, atol=1e-10)
 
 
 def ps_semi_calibrated(
@@ -135,7 +158,7 @@ def ps_semi_calibrated(
 
     **Arguments** (keyword options of `photometric_stereo`):
     - `solver`: an optimistix least-squares solver for the intensities (default
-      `optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8)`).
+      `_default_solver(dtype)`: Levenberg–Marquardt, `rtol=1e-4, atol=1e-6` in float32).
     - `max_steps`: step limit of that solver.
     - `prior_weight`: $\\lambda$ above; 0 (default) is the paper's pure joint least squares.
     - `max_pixels`: the intensities are fitted on a regular sub-grid of at most about this many
@@ -143,9 +166,13 @@ def ps_semi_calibrated(
     - `intensities`: `(K,)` known intensities; skips the fit (calibrated PS with scaled lights).
 
     **Returns:** a `PSResult` whose `info` holds `intensities` `(K,)` (geometric mean 1),
-    `frontal_intensities` `(K,)` (the closed-form start), `converged` (bool scalar) and
-    `steps`. If the fit did not converge, solved pixels get `Status.NOT_CONVERGED` (with the
-    default outputs), so nothing is silently trusted.
+    `frontal_intensities` `(K,)` (the closed-form start), `converged` (bool scalar: the fit
+    met its stopping rule), `fallback` (bool scalar: the fit was unusable, non-finite or worse
+    than its start, and the start was used instead), `steps` and `objective` `(2,)` (the
+    normalised objective at the start and at the intensities used). The capture is never
+    discarded: a fit that stopped at `max_steps` but lowered the objective keeps its
+    intensities, a failed one falls back to the frontal start; per-pixel `status` is that of
+    the L2 solve with the intensities used, and `converged`/`fallback` say which case it was.
     """
     k, h, w, _ = images.shape
     if lights.ndim != 2:
@@ -168,30 +195,26 @@ def ps_semi_calibrated(
             raise ValueError(f"intensities must be ({k},) finite and positive, got {e}")
         e = _geo_normalise(e)
         e0, converged, steps = e, jnp.asarray(True), jnp.asarray(0)
+        fallback, costs = jnp.asarray(False), jnp.zeros((2,), dtype)
     else:
         if solver is None:
-            solver = optx.LevenbergMarquardt(rtol=1e-6, atol=1e-8)
+            solver = _default_solver(dtype)
         stride = max(1, math.ceil(math.sqrt(h * w / max_pixels)))
-        e, e0, converged, steps = _fit_intensities(
+        e, e0, converged, fallback, steps, costs = _fit_intensities(
             images, lights, mask, sample_mask, thresholds, stride, solver, max_steps,
             prior_weight,
         )
-    return _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged, steps)
+    return _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged,
+                   fallback, steps, costs)
 
 
 @jax.jit
-def _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged, steps):
+def _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged, fallback, steps,
+            costs):
     res = ps_l2(images, e[:, None].astype(lights.dtype) * lights, mask, sample_mask, thresholds)
-    failed = (res.status == Status.OK) & ~converged
-    status = jnp.where(failed, Status.NOT_CONVERGED, res.status).astype(jnp.int32)
-    keep = status == Status.OK
-    default_n = jnp.array([0, 0, 1], res.normals.dtype)
     return PSResult(
-        jnp.where(keep[..., None], res.normals, default_n),
-        jnp.where(keep[..., None], res.albedo, 0),
-        status,
-        res.n_used,
-        jnp.where(keep, res.residual, 0),
+        res.normals, res.albedo, res.status, res.n_used, res.residual,
         {"intensities": e, "frontal_intensities": e0, "converged": converged,
-         "steps": jnp.asarray(steps, jnp.int32)},
+         "fallback": fallback, "steps": jnp.asarray(steps, jnp.int32),
+         "objective": costs},
     )
