@@ -1,9 +1,14 @@
-"""Core speed: L2 photometric stereo and Frankot–Chellappa at 1280x1024, K = 4, 5, 12.
+"""Core speed, each figure as a ratio to its numpy/scipy baseline in the same run.
+
+At 1280x1024: L2 photometric stereo (K = 4, 5, 12; K = 12 with about 5% of the samples in the
+mask dropped by a shadow threshold), Frankot–Chellappa and the DCT Poisson solve, and PS + FC
+together. Then time per pixel from 0.25 MP to 16 MP (PS K=5 and FC), and the peak resident
+memory of a fresh process that solves and integrates one 16 MP five-frame capture.
 
 Compile time and run time are reported apart (first call vs. the median of repeated calls,
-each ended by `block_until_ready`); numpy/scipy baselines run in the same process.
+each ended by `block_until_ready`). The ratio is jaxps / baseline: below 1 is faster.
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_core.py [--repeats 20] [--out FILE]
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_core.py [--repeats 20] [--quick] [--out FILE]
 """
 
 from __future__ import annotations
@@ -11,7 +16,9 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
+import resource
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -21,13 +28,12 @@ import scipy.fft
 import jaxps
 
 try:
-    from benchmarks._common import time_calls
+    from benchmarks._common import environment, time_calls
 except ImportError:  # run as a script
     import pathlib
-    import sys
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import time_calls
+    from benchmarks._common import environment, time_calls
 
 H, W = 1024, 1280
 
@@ -38,101 +44,199 @@ def timed(fn, repeats):
     return t["first_call_s"], t["run_s_median"]
 
 
+def ring_lights(k):
+    """A frontal light and k-1 on a 30-degree ring."""
+    t = np.linspace(0, 2 * np.pi, k - 1, endpoint=False)
+    return jaxps.lights_from_angles(np.r_[0, 30 * np.cos(t)], np.r_[0, 30 * np.sin(t)])
+
+
 def numpy_ps(images, pinv):
     """Baseline: pinv-matmul over all pixels, then normalise (float32)."""
-    k = images.shape[0]
+    k, h, w = images.shape
     b = pinv @ images.reshape(k, -1)
     rho = np.sqrt(np.einsum("ij,ij->j", b, b))
     n = b / np.where(rho > 0, rho, 1)
-    return n.T.reshape(H, W, 3), rho.reshape(H, W)
+    return n.T.reshape(h, w, 3), rho.reshape(h, w)
 
 
-def fc_numpy(p, q, rfft2, irfft2):
-    """Baseline Frankot–Chellappa with a given real FFT pair (numpy or scipy)."""
-    wc = 2 * np.pi * np.fft.rfftfreq(W)[None, :]
-    wr = 2 * np.pi * np.fft.fftfreq(H)[:, None]
+def _freqs(h, w):
+    wc = 2 * np.pi * np.fft.rfftfreq(w)[None, :]
+    wr = 2 * np.pi * np.fft.fftfreq(h)[:, None]
+    return wc, wr
+
+
+def scipy_fc(p, q):
+    """Baseline Frankot–Chellappa with scipy.fft (2 workers) on float32 gradients."""
+    h, w = p.shape
+    wc, wr = _freqs(h, w)
     denom = wc**2 + wr**2
     denom[0, 0] = 1
-    z_hat = -1j * (wc * rfft2(p) + wr * rfft2(-q)) / denom
+    z_hat = -1j * (wc * scipy.fft.rfft2(p, workers=2) + wr * scipy.fft.rfft2(-q, workers=2))
+    z_hat /= denom
     z_hat[0, 0] = 0
-    return irfft2(z_hat, s=(H, W))
+    return scipy.fft.irfft2(z_hat, s=(h, w), workers=2)
+
+
+def numpy_fc(p, q):
+    h, w = p.shape
+    wc, wr = _freqs(h, w)
+    denom = wc**2 + wr**2
+    denom[0, 0] = 1
+    z_hat = -1j * (wc * np.fft.rfft2(p) + wr * np.fft.rfft2(-q)) / denom
+    z_hat[0, 0] = 0
+    return np.fft.irfft2(z_hat, s=(h, w))
+
+
+def scipy_dct_poisson(gc, gr):
+    """Baseline Neumann Poisson solve with scipy.fft.dctn (2 workers)."""
+    h, w = gc.shape
+    gh = (gc[:, 1:] + gc[:, :-1]) / 2
+    gv = (gr[1:] + gr[:-1]) / 2
+    rhs = np.zeros((h, w), gc.dtype)
+    rhs[:, 1:] += gh
+    rhs[:, :-1] -= gh
+    rhs[1:] += gv
+    rhs[:-1] -= gv
+    lam = (4 * np.sin(np.pi * np.arange(h)[:, None] / (2 * h)) ** 2
+           + 4 * np.sin(np.pi * np.arange(w)[None, :] / (2 * w)) ** 2).astype(gc.dtype)
+    lam[0, 0] = 1
+    c = scipy.fft.dctn(rhs, type=2, norm="ortho", workers=2) / lam
+    c[0, 0] = 0
+    return scipy.fft.idctn(c, type=2, norm="ortho", workers=2)
+
+
+def row(rows, work, impl, run, baseline=None, **extra):
+    r = {"work": work, "impl": impl, "run_s": run, **extra}
+    if baseline is not None:
+        r["baseline_s"] = baseline
+        r["ratio"] = run / baseline
+    rows.append(r)
+    return r
+
+
+def core_rows(repeats, h, w):
+    rows = []
+    surface = jaxps.synthetic.face_like(h, w)
+    for k in (4, 5, 12):
+        lights = jaxps.synthetic.scanner_lights(20.0, k=k) if k < 12 else ring_lights(k)
+        scene = jaxps.synthetic.render_scene(surface, lights)
+        images = jax.device_put(scene.images)
+        images_np = np.asarray(scene.images)
+        pinv = np.linalg.pinv(lights).astype(np.float32)
+        _, base = timed(lambda: numpy_ps(images_np, pinv), repeats)
+        row(rows, "ps_l2", "numpy pinv-matmul+normalise", base, K=k)
+        first, run = timed(lambda: jaxps.photometric_stereo(images, lights), repeats)
+        row(rows, "ps_l2", "jaxps", run, base, K=k, compile_s=first - run)
+        mask = np.asarray(scene.mask)
+        if k == 12:
+            # A shadow threshold at the 5th percentile of the samples in the mask.
+            inside = images_np[:, mask]
+            threshold = float(np.percentile(inside, 5))
+            dropped = float(np.mean(inside < threshold))
+            first, run = timed(lambda: jaxps.photometric_stereo(
+                images, lights, mask=mask, shadow_threshold=threshold), repeats)
+            row(rows, "ps_l2_dropped", "jaxps", run, base, K=k, compile_s=first - run,
+                dropped_fraction=dropped, pixels_dropping=float(np.mean(
+                    (inside < threshold).any(0))))
+        if k != 5:
+            continue
+        normals = jax.block_until_ready(jaxps.photometric_stereo(images, lights).normals)
+        p, q = (np.asarray(a) for a in jaxps.gradients_from_normals(
+            normals, jnp.ones((h, w), bool)))
+        _, fc_base = timed(lambda: scipy_fc(p, q), repeats)
+        row(rows, "fc", "scipy rfft2 float32, 2 workers", fc_base)
+        _, run = timed(lambda: numpy_fc(p, q), repeats)
+        row(rows, "fc", "numpy rfft2 (float64)", run, fc_base)
+        first, run = timed(lambda: jaxps.integrate(normals), repeats)
+        row(rows, "fc", "jaxps", run, fc_base, compile_s=first - run)
+
+        gc, gr = p, -q
+        _, dct_base = timed(lambda: scipy_dct_poisson(gc, gr), repeats)
+        row(rows, "dct", "scipy dctn float32, 2 workers", dct_base)
+        first, run = timed(lambda: jaxps.integrate(normals, method="dct"), repeats)
+        row(rows, "dct", "jaxps", run, dct_base, compile_s=first - run)
+
+        _, both_base = timed(lambda: scipy_fc(*_pq(numpy_ps(images_np, pinv)[0])), repeats)
+        row(rows, "ps_l2+fc", "numpy PS + scipy FC", both_base, K=k)
+        first, run = timed(lambda: jaxps.integrate(
+            jaxps.photometric_stereo(images, lights).normals), repeats)
+        row(rows, "ps_l2+fc", "jaxps", run, both_base, K=k, compile_s=first - run)
+    return rows
+
+
+def _pq(n):
+    nz = np.maximum(n[..., 2], 0.05)
+    return -n[..., 0] / nz, -n[..., 1] / nz
+
+
+def scaling_rows(repeats, sizes):
+    """Time per pixel for PS (K=5) and FC at each (rows, columns)."""
+    rows = []
+    lights = jaxps.synthetic.scanner_lights(20.0)
+    for h, w in sizes:
+        scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(h, w), lights)
+        images = jax.device_put(scene.images)
+        _, ps = timed(lambda: jaxps.photometric_stereo(images, lights), repeats)
+        normals = jax.block_until_ready(jaxps.photometric_stereo(images, lights).normals)
+        _, fc = timed(lambda: jaxps.integrate(normals), repeats)
+        mp = h * w / 1e6
+        rows.append({"rows": h, "columns": w, "megapixels": mp, "ps_l2_s": ps, "fc_s": fc,
+                     "ps_l2_ns_per_px": 1e3 * ps / mp, "fc_ns_per_px": 1e3 * fc / mp})
+        del images, normals, scene
+    return rows
+
+
+def peak_rss(h, w):
+    """In this (fresh) process: render, solve and integrate one five-frame capture; print the
+    peak resident memory in GB (the rendering included)."""
+    lights = jaxps.synthetic.scanner_lights(20.0)
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(h, w), lights)
+    res = jaxps.photometric_stereo(scene.images, lights, mask=scene.mask)
+    height = jax.block_until_ready(jaxps.integrate(res.normals))
+    print(json.dumps({"rows": h, "columns": w, "peak_rss_gb":
+                      resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+                      "height_finite": bool(np.isfinite(np.asarray(height)).all())}))
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--quick", action="store_true",
+                    default=os.environ.get("JAXPS_BENCH_QUICK") == "1")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results",
                                                   "core.json"))
+    ap.add_argument("--peak-rss", nargs=2, type=int, metavar=("ROWS", "COLUMNS"),
+                    help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.peak_rss:
+        return peak_rss(*args.peak_rss)
 
-    surface = jaxps.synthetic.face_like(H, W)
-    results = {"shape": [H, W], "repeats": args.repeats, "rows": []}
-    for k in (4, 5, 12):
-        if k in (4, 5):
-            lights = jaxps.synthetic.scanner_lights(20.0, k=k)
-        else:
-            az = 30 * np.cos(np.linspace(0, 2 * np.pi, 11, endpoint=False))
-            el = 30 * np.sin(np.linspace(0, 2 * np.pi, 11, endpoint=False))
-            lights = jaxps.lights_from_angles(np.r_[0, az], np.r_[0, el])
-        scene = jaxps.synthetic.render_scene(surface, lights)
-        images = jax.device_put(scene.images)
-        images_np = np.asarray(scene.images)
-        pinv = np.linalg.pinv(lights).astype(np.float32)
-
-        first, run = timed(lambda: jaxps.photometric_stereo(images, lights), args.repeats)
-        results["rows"].append({"work": "ps_l2", "impl": "jaxps", "K": k,
-                                "compile_s": first - run, "run_s": run})
-        first, run = timed(lambda: jaxps.photometric_stereo(
-            images, lights, mask=scene.mask, shadow_threshold=0.01), args.repeats)
-        results["rows"].append({"work": "ps_l2_mask_shadow", "impl": "jaxps", "K": k,
-                                "compile_s": first - run, "run_s": run})
-        _, run = timed(lambda: numpy_ps(images_np, pinv), args.repeats)
-        results["rows"].append({"work": "ps_l2", "impl": "numpy pinv-matmul+normalise",
-                                "K": k, "run_s": run})
-
-        if k == 5:
-            res = jaxps.photometric_stereo(images, lights)
-            normals = jax.block_until_ready(res.normals)
-            first, run = timed(lambda: jaxps.integrate(normals), args.repeats)
-            results["rows"].append({"work": "fc", "impl": "jaxps", "compile_s": first - run,
-                                    "run_s": run})
-            p, q = (np.asarray(a) for a in jaxps.gradients_from_normals(
-                normals, jnp.ones((H, W), bool)))
-            _, run = timed(lambda: fc_numpy(p, q, np.fft.rfft2, np.fft.irfft2), args.repeats)
-            results["rows"].append({"work": "fc", "impl": "numpy rfft2 (float64)",
-                                    "run_s": run})
-
-            def scipy_r(x):
-                return scipy.fft.rfft2(x, workers=2)
-
-            def scipy_i(x, s):
-                return scipy.fft.irfft2(x, s=s, workers=2)
-
-            _, run = timed(lambda: fc_numpy(p, q, scipy_r, scipy_i), args.repeats)
-            results["rows"].append({"work": "fc", "impl": "scipy rfft2 float32, 2 workers",
-                                    "run_s": run})
-
-            def both():
-                r = jaxps.photometric_stereo(images, lights)
-                return jaxps.integrate(r.normals)
-
-            first, run = timed(both, args.repeats)
-            results["rows"].append({"work": "ps_l2+fc", "impl": "jaxps", "K": k,
-                                    "compile_s": first - run, "run_s": run})
-
-    results["env"] = {
-        "jax": jax.__version__, "numpy": np.__version__, "device": str(jax.devices()[0]),
-        "cpu_count": os.cpu_count(), "platform": platform.platform(),
-        "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
-        "XLA_FLAGS": os.environ.get("XLA_FLAGS"),
-    }
+    h, w = (256, 320) if args.quick else (H, W)
+    repeats = 3 if args.quick else args.repeats
+    sizes = ([(256, 320), (512, 640)] if args.quick else
+             [(512, 512), (1024, 1024), (2048, 2048), (4096, 4096)])
+    results = {"shape": [h, w], "repeats": repeats, "quick": args.quick,
+               "rows": core_rows(repeats, h, w),
+               "scaling": scaling_rows(max(3, repeats // 4), sizes)}
+    big = sizes[-1]
+    out = subprocess.run([sys.executable, __file__, "--peak-rss", *map(str, big)],
+                         capture_output=True, text=True, check=True)
+    results["peak_memory"] = json.loads(out.stdout.strip().splitlines()[-1])
+    results["env"] = environment()
+    results["env"]["OPENBLAS_NUM_THREADS"] = os.environ.get("OPENBLAS_NUM_THREADS")
+    results["env"]["XLA_FLAGS"] = os.environ.get("XLA_FLAGS")
     os.makedirs(os.path.dirname(args.out), exist_ok=True)
     with open(args.out, "w") as f:
         json.dump(results, f, indent=2)
     for r in results["rows"]:
+        ratio = f"  {r['ratio']:5.2f}x baseline" if "ratio" in r else ""
         comp = f"  (compile {r['compile_s']:.2f} s)" if "compile_s" in r else ""
-        print(f"{r['work']:>18} K={r.get('K', 5):>2} {r['impl']:<32} "
-              f"{1e3 * r['run_s']:8.2f} ms{comp}")
+        print(f"{r['work']:>14} K={r.get('K', '-'):>2} {r['impl']:<32} "
+              f"{1e3 * r['run_s']:8.2f} ms{ratio}{comp}")
+    for r in results["scaling"]:
+        print(f"{r['rows']:>5}x{r['columns']:<5} PS {r['ps_l2_ns_per_px']:6.2f} ns/px, "
+              f"FC {r['fc_ns_per_px']:6.2f} ns/px")
+    print("peak memory:", results["peak_memory"])
     _chart(results, args.out.replace(".json", ".png"))
 
 
@@ -142,15 +246,29 @@ def _chart(results, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = results["rows"]
-    labels = [f"{r['work']} K={r.get('K', 5)}\n{r['impl']}" for r in rows]
-    fig, ax = plt.subplots(figsize=(9, 0.42 * len(rows) + 1), constrained_layout=True)
-    colours = ["tab:blue" if r["impl"] == "jaxps" else "tab:gray" for r in rows]
-    ax.barh(range(len(rows)), [1e3 * r["run_s"] for r in rows], color=colours)
+    rows = [r for r in results["rows"] if "ratio" in r]
+    fig, (ax, bx) = plt.subplots(1, 2, figsize=(12, 0.45 * len(rows) + 1.5),
+                                 constrained_layout=True)
+    labels = [f"{r['work']} K={r.get('K', '-')}\n{r['impl']}" for r in rows]
+    ax.barh(range(len(rows)), [r["ratio"] for r in rows],
+            color=["tab:blue" if r["impl"] == "jaxps" else "tab:gray" for r in rows])
+    ax.axvline(1, color="k", lw=0.8)
     ax.set_yticks(range(len(rows)), labels, fontsize=7)
     ax.invert_yaxis()
-    ax.set_xlabel("run time per call (ms), 1280x1024, after compile")
-    ax.set_title("jaxps core (blue) vs numpy/scipy baselines (grey)")
+    ax.set_xlabel("time / numpy-scipy baseline in the same run (below 1: faster)")
+    ax.set_title(f"{results['shape'][1]}x{results['shape'][0]}, after compile")
+    sc = results["scaling"]
+    mp = [r["megapixels"] for r in sc]
+    bx.plot(mp, [r["ps_l2_ns_per_px"] for r in sc], "o-", label="PS L2, K=5")
+    bx.plot(mp, [r["fc_ns_per_px"] for r in sc], "s-", label="Frankot–Chellappa")
+    bx.set_xscale("log")
+    bx.set_xlabel("megapixels")
+    bx.set_ylabel("ns per pixel")
+    bx.set_ylim(0, None)
+    bx.legend()
+    bx.set_title(f"time per pixel; {results['peak_memory']['rows']}x"
+                 f"{results['peak_memory']['columns']} capture: "
+                 f"{results['peak_memory']['peak_rss_gb']:.2f} GB peak RSS")
     fig.savefig(path, dpi=110)
     plt.close(fig)
 

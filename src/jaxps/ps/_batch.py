@@ -27,7 +27,9 @@ __all__ = ["photometric_stereo_batch"]
 _CACHE: dict = {}
 
 
-def _stack_captures(images) -> jax.Array:
+def _stack_captures(images):
+    """`(N, K, H, W[, C])` captures as one array: numpy stays numpy (each chunk is moved to the
+    device on its own, so the whole stack is not copied first), JAX arrays stay JAX arrays."""
     if isinstance(images, (list, tuple)):
         if not images:
             raise ValueError("images: empty list of captures")
@@ -37,8 +39,10 @@ def _stack_captures(images) -> jax.Array:
                 raise ValueError(
                     f"images: capture {i} has shape {s} but capture 0 has {shapes[0]}; a batch "
                     "needs captures of one size (crop or resize them, or solve them separately)")
-        images = jnp.stack([jnp.asarray(c) for c in images])
-    images = jnp.asarray(images)
+        on_device = any(isinstance(c, jax.Array) for c in images)
+        images = jnp.stack([jnp.asarray(c) for c in images]) if on_device else np.stack(images)
+    elif not isinstance(images, jax.Array):
+        images = np.asarray(images)
     if images.ndim not in (4, 5):
         raise ValueError(
             f"images must be (N, K, H, W) or (N, K, H, W, C), got shape {images.shape}")
@@ -119,7 +123,7 @@ def photometric_stereo_batch(
     if method not in PS_METHODS:
         raise ValueError(f"method must be one of {PS_METHODS}, got {method!r}")
     images = _stack_captures(images)
-    if not jnp.issubdtype(images.dtype, jnp.floating):
+    if not np.issubdtype(images.dtype, np.floating):
         raise ValueError(f"images must be floating point in [0, 1], got {images.dtype}")
     n, k, h, w = images.shape[:4]
     lights = np.asarray(lights, np.float32)
@@ -152,7 +156,8 @@ def photometric_stereo_batch(
     parts = []
     for start in range(0, n, step):
         sl = slice(start, min(start + step, n))
-        args = [images[sl],
+        part = images if (start == 0 and step >= n) else images[sl]
+        args = [jnp.asarray(part),
                 jnp.asarray(lights if shared_lights else lights[sl], images.dtype),
                 jnp.asarray(mask if shared_mask else mask[sl]),
                 None if sample_mask is None else jnp.asarray(sample_mask[sl])]
