@@ -23,10 +23,10 @@ import tempfile
 import time
 
 try:
-    from benchmarks._common import RESULTS, environment, write_json
+    from benchmarks._common import environment, write_json
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import RESULTS, environment, write_json
+    from benchmarks._common import environment, write_json
 
 QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 # (name, rows, columns): a 1.3 MP scanner frame and a Yale B frame.

@@ -182,7 +182,6 @@ def scaling_rows(repeats, sizes):
         mp = h * w / 1e6
         rows.append({"rows": h, "columns": w, "megapixels": mp, "ps_l2_s": ps, "fc_s": fc,
                      "ps_l2_ns_per_px": 1e3 * ps / mp, "fc_ns_per_px": 1e3 * fc / mp})
-        del images, normals, scene
     return rows
 
 
