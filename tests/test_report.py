@@ -163,8 +163,8 @@ def test_preview_panels_show_normals_albedo_and_shading(tmp_path):
     img = cv2.imread(str(tmp_path / "p.png"))[..., ::-1]
     scale = 480 / h
     ph, pw = round(h * scale), round(w * scale)
-    assert img.shape == (28 + ph, 3 * pw + 16, 3)
-    row = img[28:]
+    assert img.shape == (24 + ph + 24, 3 * pw + 16, 3)
+    row = img[24:24 + ph]
     cy, cx = ph // 2, pw // 2
     np.testing.assert_allclose(row[cy, cx], np.round(np.array([0.8, 0.5, 0.9]) * 255), atol=1)
     assert tuple(row[5, 5]) == (255, 255, 255)  # outside the mask
