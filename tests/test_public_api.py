@@ -31,7 +31,8 @@ ADDED = {
 # Changed on purpose since the snapshot (issue 17; the snapshot entries were rewritten):
 # `load_capture(equalize=False)` and `reconstruct(equalize=False)` became
 # `intensities="frontal"` (per-frame intensities estimated and divided out by default), and
-# `Capture` gained `intensities` and `intensity_method`.
+# `Capture` gained `intensities` and `intensity_method`. Issue 18: `PS_METHODS` gained `"l1"`
+# (exact L1 photometric stereo).
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

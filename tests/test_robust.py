@@ -109,7 +109,7 @@ def _edge_stack():
     return px.reshape(5, 1, 5).astype(np.float32), lights
 
 
-@pytest.mark.parametrize("method", ("l2",) + ROBUST)
+@pytest.mark.parametrize("method", ("l2", "l1") + ROBUST)
 def test_edge_cases_have_status_and_no_nan(method):
     images, lights = _edge_stack()
     res = jaxps.photometric_stereo(images, lights, method=method)
@@ -130,6 +130,8 @@ def test_edge_cases_have_status_and_no_nan(method):
     assert np.asarray(res3.status)[0, 0] == jaxps.Status.OK
     assert np.all(np.isfinite(np.asarray(res3.normals)))
 
+    if method == "l1":  # shared lights only; its DEGENERATE case is in test_l1_status_codes...
+        return
     # Coplanar lights (per pixel, so they reach the kernel): DEGENERATE, finite.
     flat = np.array([[1, 0, 1], [0, 1, 1], [-1, 0, 1], [0, -1, 1]], np.float32)
     flat = flat - np.array([0, 0, 1], np.float32)  # all in the z = 0 plane
@@ -214,3 +216,77 @@ def test_psm_corrupted_against_12_light_reference(data, obj):
     assert err["l2"] > 10
     for m in ROBUST:
         assert err[m] < 0.4 * err["l2"], err
+
+
+# ---------------------------------------------------------------------------- exact L1 ("l1")
+def _linprog_l1(a, b):
+    """min_x ||a x - b||_1 as a linear program (scipy HiGHS): the reference optimum."""
+    from scipy.optimize import linprog
+
+    m = len(b)
+    cost = np.r_[np.zeros(3), np.ones(m)]
+    a_ub = np.block([[-a, -np.eye(m)], [a, -np.eye(m)]])
+    res = linprog(cost, A_ub=a_ub, b_ub=np.r_[-b, b],
+                  bounds=[(None, None)] * 3 + [(0, None)] * m)
+    return res.fun
+
+
+def test_l1_reaches_the_linear_programs_optimum_over_the_usable_samples():
+    rng = np.random.default_rng(3)
+    lights = np.asarray(jaxps.lights_from_angles([0, 30, -30, 10, -15, 0, 20],
+                                                 [0, 5, -5, 30, -25, 45, -30]))
+    images = rng.uniform(0.05, 0.9, (7, 8, 9)).astype(np.float32)
+    images[1, :3] = np.nan  # dropped: not finite
+    images[3, 4:] = 0.0  # dropped: below the shadow threshold
+    res = jaxps.photometric_stereo(images, lights, method="l1", shadow_threshold=0.01,
+                                   dark_threshold=0.0)
+    assert np.all(np.asarray(res.status) == 0)
+    b = np.asarray(res.normals) * np.asarray(res.albedo)[..., None]
+    for r, c in np.ndindex(8, 9):
+        x = images[:, r, c]
+        used = np.isfinite(x) & (x >= 0.01)
+        ours = np.abs(x[used] - lights[used] @ b[r, c]).sum()
+        assert ours <= _linprog_l1(lights[used], x[used]) + 1e-5, (r, c)
+    n_used = np.asarray(res.n_used)
+    assert n_used.max() <= 7 and n_used.min() >= 3  # inliers of the fit
+
+
+def test_l1_ignores_one_corrupted_sample_where_least_squares_does_not():
+    # Lights in general position: with the scanner's cross, lights (-20,0), (0,0), (+20,0) lie
+    # in one plane, and an error on one end of that line costs L1 the same as on the other
+    # (a tie that rounding breaks either way).
+    lights = jaxps.lights_from_angles([0, 30, -25, 10, -15], [0, 10, -5, 30, -25])
+    s = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(48), lights)
+    images = np.array(s.images)
+    images[2] += 0.3  # a highlight on every pixel of one frame
+    mask = np.asarray(s.mask)
+    l1 = jaxps.photometric_stereo(images, s.lights, mask=mask, method="l1")
+    l2 = jaxps.photometric_stereo(images, s.lights, mask=mask)
+    e1 = angular_stats(l1.normals, s.normals, mask=mask)["median_deg"]
+    e2 = angular_stats(l2.normals, s.normals, mask=mask)["median_deg"]
+    assert e1 < 0.01 and e2 > 5, (e1, e2)  # three clean samples fit exactly
+    ok = np.asarray(l1.status)[mask] == 0
+    assert ok.all()
+    assert np.all(np.asarray(l1.n_used)[mask] == 4)  # the corrupted sample is the outlier
+    colour = jaxps.photometric_stereo(np.stack([images] * 3, -1), s.lights, mask=mask,
+                                      method="l1")
+    np.testing.assert_allclose(colour.normals, l1.normals, atol=1e-5)
+    np.testing.assert_allclose(colour.albedo[..., 1], l1.albedo, rtol=1e-4, atol=1e-6)
+
+
+def test_l1_status_codes_and_bad_input():
+    lights = np.asarray(jaxps.lights_from_angles([0, 30, -30, 0], [0, 0, 0, 30]))
+    images = np.full((4, 2, 3), 0.5, np.float32)
+    images[3, 0] = 0.0  # the only light out of the y = 0 plane, shadowed: coplanar rest
+    images[:2, 1, 1] = 0.0  # two of four shadowed: too few
+    res = jaxps.photometric_stereo(images, lights, method="l1", shadow_threshold=0.01)
+    st = np.asarray(res.status)
+    assert np.all(st[0] == jaxps.Status.DEGENERATE)
+    assert st[1, 1] == jaxps.Status.TOO_FEW_LIGHTS
+    np.testing.assert_array_equal(np.asarray(res.normals)[0], [[0, 0, 1]] * 3)
+    with pytest.raises(ValueError, match="K=9"):
+        jaxps.photometric_stereo(np.full((9, 2, 2), 0.5, np.float32), ring_lights(9, 30.0),
+                                 method="l1")
+    field = np.broadcast_to(lights[:, None, None], (4, 2, 3, 3))
+    with pytest.raises(ValueError, match="shared"):
+        jaxps.photometric_stereo(images, field, method="l1")

@@ -25,6 +25,7 @@ __all__ = ["PS_METHODS", "photometric_stereo"]
 # solvers' optimistix and equinox are not imported by a plain L2 run.
 _SOLVERS = {
     "l2": ("_l2", "ps_l2"),
+    "l1": ("_l1", "ps_l1"),
     "barsky": ("_robust", "ps_barsky"),
     "irls": ("_robust", "ps_irls"),
     "sbl": ("_robust", "ps_sbl"),
