@@ -101,7 +101,7 @@ def ps_l1(images, lights, mask, sample_mask, thresholds, *, threshold: float = 0
     **Raises:** `ValueError` for per-pixel `(K, H, W, 3)` lights or more than `MAX_L1_LIGHTS`
     lights (use `method="irls"`), or a non-positive `threshold`.
     """
-    k, h, w, c = images.shape
+    k = images.shape[0]
     if lights.ndim != 2:
         raise ValueError("method='l1' needs shared (K, 3) lights; for per-pixel lights use "
                          "method='irls'")
