@@ -121,6 +121,20 @@ def cand_estimate(method, **options):
     return run
 
 
+def cand_frontal_lit(fraction):
+    """`"frontal"` over the pixels lit in every frame (each sample at least `fraction` of its
+    frame's 90th percentile): a pixel in attached or cast shadow under one light breaks the
+    frame means' proportionality to $e_k l_k \\cdot \\bar b$, so it is left out of all of them."""
+    def run(images, lights, ctx):
+        im = np.asarray(images)
+        top = np.percentile(im.reshape(len(im), -1), 90, axis=1)
+        lit = np.all(im >= fraction * top[:, None, None], axis=0)
+        e = jaxps.intensity_estimate(images, lights, method="frontal",
+                                     mask=lit if lit.any() else None)
+        return _divide_and_solve(images, lights, e)
+    return run
+
+
 def cand_semi(prior_weight):
     def run(images, lights, ctx):
         res = jaxps.photometric_stereo(images, lights, method="semi_calibrated",
@@ -202,6 +216,7 @@ CANDIDATES = {
     "none": cand_none,
     "mean": cand_estimate("mean"),
     "frontal": cand_estimate("frontal"),
+    **{f"frontal_lit{f}": cand_frontal_lit(f) for f in (0.05, 0.1, 0.2, 0.3)},
     "semi_calibrated": cand_semi(0.0),
     "semi_calibrated_prior0.1": cand_semi(0.1),
     "semi_calibrated_prior0.3": cand_semi(0.3),
@@ -213,7 +228,8 @@ CANDIDATES = {
 }
 # The candidates a default may be chosen from (leave-one-subject-out, in `loo_choice`): the
 # per-capture estimates that need nothing but the capture.
-CHOOSABLE = ("none", "mean", "frontal", "semi_calibrated", "semi_calibrated_prior0.1",
+CHOOSABLE = ("none", "mean", "frontal", "frontal_lit0.05", "frontal_lit0.1", "frontal_lit0.2",
+             "frontal_lit0.3", "semi_calibrated", "semi_calibrated_prior0.1",
              "semi_calibrated_prior0.3", "semi_calibrated_prior1", "integrability")
 
 

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core._status import Status
-from ._l2 import PSResult, _any, _finish, _grey
+from ._l2 import PSResult, _count, _finish, _samples
 
 __all__ = ["MAX_L1_LIGHTS", "ps_l1"]
 
@@ -37,15 +37,9 @@ def _pixel_l1(x, usable, inside, lights, thresholds, triples, outlier):
     """Solve one pixel. `x`: K samples, each a list of C channel scalars; `usable`: K bools;
     `lights`: `(K, 3)`; `triples`: `[((p, q, r), inverse (3, 3), valid), ...]` of every light
     triple. Returns the outputs of `_l2._finish` (n_used and residual over the inliers)."""
-    dark, saturation, shadow = thresholds
     ks = range(len(x))
     dtype = x[0][0].dtype
-    g = [_grey(xk) for xk in x]
-    finite = [jnp.isfinite(v) for v in g]
-    g = [jnp.where(finite[k], g[k], 0) for k in ks]
-    x = [[jnp.where(finite[k], v, 0) for v in x[k]] for k in ks]
-    unsat = [finite[k] & usable[k] & ~_any([v >= saturation for v in x[k]]) for k in ks]
-    used = [unsat[k] & (g[k] >= shadow) for k in ks]
+    x, g, used, cases = _samples(x, usable, thresholds)
 
     def shade(b, k):
         return lights[k, 0] * b[0] + lights[k, 1] * b[1] + lights[k, 2] * b[2]
@@ -59,10 +53,7 @@ def _pixel_l1(x, usable, inside, lights, thresholds, triples, outlier):
         best = jnp.where(better, cost, best)
         b = [jnp.where(better, bj[a], b[a]) for a in range(3)]
 
-    def count(flags):
-        return sum(f.astype(jnp.int32) for f in flags)
-
-    n_used = count(used)
+    n_used = _count(used)
     scale = sum(jnp.where(used[k], g[k], 0) for k in ks) / jnp.maximum(n_used, 1).astype(dtype)
     res = [g[k] - shade(b, k) for k in ks]
     inlier = [used[k] & (jnp.abs(res[k]) <= outlier * scale) for k in ks]
@@ -73,15 +64,8 @@ def _pixel_l1(x, usable, inside, lights, thresholds, triples, outlier):
         ss = jnp.maximum(sum(v * v for v in s), jnp.finfo(dtype).tiny)
         return [sum(s[k] * x[k][c] for k in ks) / ss for c in range(len(x[0]))]
 
-    brightest = functools.reduce(jnp.maximum, [jnp.where(finite[k], g[k], -jnp.inf) for k in ks])
-    cases = [
-        (count(finite) < 3, Status.INVALID),
-        (brightest <= dark, Status.DARK),
-        (count(unsat) < 3, Status.SATURATED),
-        (n_used < 3, Status.TOO_FEW_LIGHTS),
-        (~jnp.isfinite(best), Status.DEGENERATE),  # no usable triple spans 3-D
-    ]
-    return _finish(b, sq, count(inlier), cases, inside,
+    cases.append((~jnp.isfinite(best), Status.DEGENERATE))  # no usable triple spans 3-D
+    return _finish(b, sq, _count(inlier), cases, inside,
                    None if len(x[0]) == 1 else colour_albedo)
 
 

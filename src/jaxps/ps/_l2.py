@@ -18,8 +18,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ..core._linalg import REL_DET_MIN, solve3
-from ..lights._directions import MAX_LIGHT_CONDITION
 from ..core._status import Status, first_status
+from ..lights._directions import MAX_LIGHT_CONDITION
 
 __all__ = ["PSResult", "ps_l2"]
 
@@ -51,6 +51,32 @@ def _any(xs):
 def _grey(x):
     """Channel mean of one sample, `x` a list of C scalars (unrolled: no reduction op)."""
     return x[0] if len(x) == 1 else sum(x) / len(x)
+
+
+def _count(flags):
+    return sum(f.astype(jnp.int32) for f in flags)
+
+
+def _samples(x, usable, thresholds):
+    """Sort one pixel's samples: `x` (K lists of C scalars) with non-finite ones zeroed, the
+    grey values `g`, and the per-sample flags finite / unsaturated (and usable) / used (also
+    above the shadow threshold). Also the status cases they decide, in `first_status` order."""
+    dark, saturation, shadow = thresholds
+    ks = range(len(x))
+    g = [_grey(xk) for xk in x]
+    finite = [jnp.isfinite(v) for v in g]
+    g = [jnp.where(finite[k], g[k], 0) for k in ks]
+    x = [[jnp.where(finite[k], v, 0) for v in x[k]] for k in ks]
+    unsat = [finite[k] & usable[k] & ~_any([v >= saturation for v in x[k]]) for k in ks]
+    used = [unsat[k] & (g[k] >= shadow) for k in ks]
+    brightest = functools.reduce(jnp.maximum, [jnp.where(finite[k], g[k], -jnp.inf) for k in ks])
+    cases = [
+        (_count(finite) < 3, Status.INVALID),
+        (brightest <= dark, Status.DARK),
+        (_count(unsat) < 3, Status.SATURATED),
+        (_count(used) < 3, Status.TOO_FEW_LIGHTS),
+    ]
+    return x, g, used, cases
 
 
 def _finish(b, sq, n_used, cases, inside, colour_albedo):
@@ -113,15 +139,9 @@ def _pixel_weighted(x, usable, inside, lights, thresholds):
     `x` and `usable` as in `_pixel_all_used`; `lights` a list of K `[lx, ly, lz]` (shared
     scalars or this pixel's own vectors).
     """
-    dark, saturation, shadow = thresholds
     ks = range(len(x))
     dtype = x[0][0].dtype
-    g = [_grey(xk) for xk in x]
-    finite = [jnp.isfinite(v) for v in g]
-    g = [jnp.where(finite[k], g[k], 0) for k in ks]
-    x = [[jnp.where(finite[k], v, 0) for v in x[k]] for k in ks]
-    unsat = [finite[k] & usable[k] & ~_any([v >= saturation for v in x[k]]) for k in ks]
-    used = [unsat[k] & (g[k] >= shadow) for k in ks]
+    x, g, used, cases = _samples(x, usable, thresholds)
     w = [u.astype(dtype) for u in used]
     wl = [[w[k] * lights[k][p] for p in range(3)] for k in ks]
     a = [[sum(wl[k][p] * lights[k][q] for k in ks) for q in range(3)] for p in range(3)]
@@ -135,19 +155,8 @@ def _pixel_weighted(x, usable, inside, lights, thresholds):
         return [sum(n[p] * sum(wl[k][p] * x[k][c] for k in ks) for p in range(3)) / nan
                 for c in range(len(x[0]))]
 
-    def count(flags):
-        return sum(f.astype(jnp.int32) for f in flags)
-
-    n_used = count(used)
-    brightest = functools.reduce(jnp.maximum, [jnp.where(finite[k], g[k], -jnp.inf) for k in ks])
-    cases = [
-        (count(finite) < 3, Status.INVALID),
-        (brightest <= dark, Status.DARK),
-        (count(unsat) < 3, Status.SATURATED),
-        (n_used < 3, Status.TOO_FEW_LIGHTS),
-        (rel_det < REL_DET_MIN, Status.DEGENERATE),
-    ]
-    return _finish(b, sq, n_used, cases, inside, None if len(x[0]) == 1 else colour_albedo)
+    cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))
+    return _finish(b, sq, _count(used), cases, inside, None if len(x[0]) == 1 else colour_albedo)
 
 
 def _shared_constants(lights):
