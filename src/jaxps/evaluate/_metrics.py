@@ -42,13 +42,23 @@ def angular_error(
     return err
 
 
+def _norm(v):
+    """|v| over the last axis, with a zero gradient at v = 0 instead of NaN."""
+    sq = jnp.sum(v * v, axis=-1)
+    ok = sq > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1)), 0)
+
+
 @jax.jit
 def _angular_error(a, b):
-    a = a / jnp.maximum(jnp.linalg.norm(a, axis=-1, keepdims=True), 1e-12)
-    b = b / jnp.maximum(jnp.linalg.norm(b, axis=-1, keepdims=True), 1e-12)
-    cross = jnp.linalg.norm(jnp.cross(a, b), axis=-1)
+    # Written so that its gradient is finite everywhere: equal normals (|a x b| = 0, a kink)
+    # and zero normals (a background pixel) give a zero gradient rather than NaN.
+    a = a / jnp.maximum(_norm(a), 1e-12)[..., None]
+    b = b / jnp.maximum(_norm(b), 1e-12)[..., None]
+    cross = _norm(jnp.cross(a, b))
     dot = jnp.sum(a * b, axis=-1)
-    return jnp.degrees(jnp.arctan2(cross, dot))
+    both_zero = (cross == 0) & (dot == 0)
+    return jnp.degrees(jnp.arctan2(cross, jnp.where(both_zero, 1, dot)))
 
 
 def angular_stats(

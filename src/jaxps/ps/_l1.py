@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core._status import Status
-from ._l2 import PSResult, _count, _finish, _samples
+from ._l2 import PSResult, _count, _finish, _safe_divide, _samples
 
 __all__ = ["MAX_L1_LIGHTS", "ps_l1"]
 
@@ -61,8 +61,8 @@ def _pixel_l1(x, usable, inside, lights, thresholds, triples, outlier):
 
     def colour_albedo(n):  # per channel, least squares over the inliers at the L1 normal
         s = [jnp.where(inlier[k], shade(n, k), 0) for k in ks]
-        ss = jnp.maximum(sum(v * v for v in s), jnp.finfo(dtype).tiny)
-        return [sum(s[k] * x[k][c] for k in ks) / ss for c in range(len(x[0]))]
+        ss = sum(v * v for v in s)
+        return [_safe_divide(sum(s[k] * x[k][c] for k in ks), ss) for c in range(len(x[0]))]
 
     cases.append((~jnp.isfinite(best), Status.DEGENERATE))  # no usable triple spans 3-D
     return _finish(b, sq, _count(inlier), cases, inside,

@@ -79,13 +79,28 @@ def _samples(x, usable, thresholds):
     return x, g, used, cases
 
 
+def _safe_sqrt(x):
+    """sqrt(max(x, 0)) whose gradient is 0, not inf or NaN, at x <= 0 (a dark pixel's albedo, an
+    exact fit's residual): the square root only ever sees positive numbers (jax-md's
+    `safe_mask`; a `jnp.where` after the sqrt would still pass its infinite slope back)."""
+    positive = x > 0
+    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1)), 0)
+
+
+def _safe_divide(num, den):
+    """num / den, and 0 (with a zero gradient) where den is below the dtype's eps: the
+    per-channel albedo of a pixel with no usable sample or no normal."""
+    ok = den > jnp.finfo(den.dtype).eps
+    return jnp.where(ok, num / jnp.where(ok, den, 1), 0)
+
+
 def _finish(b, sq, n_used, cases, inside, colour_albedo):
     """Normal, albedo, status, residual from $b = \\rho n$ and the squared misfit `sq`."""
-    rho_grey = jnp.sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
+    rho_grey = _safe_sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
     inv_rho = 1 / jnp.where(rho_grey > 0, rho_grey, 1)
     n = [v * inv_rho for v in b]
     rho = [rho_grey] if colour_albedo is None else colour_albedo(n)
-    residual = jnp.sqrt(jnp.maximum(sq, 0) / jnp.maximum(n_used, 1).astype(sq.dtype))
+    residual = _safe_sqrt(sq / jnp.maximum(n_used, 1).astype(sq.dtype))
     status = first_status([
         (~inside, Status.MASKED),
         *cases,
@@ -122,9 +137,8 @@ def _pixel_all_used(x, usable, inside, shared, thresholds):
 
     def colour_albedo(n):  # rho_c = n.(L^T i_c) / n.(L^T L) n: the channel's LS albedo at n
         nan = sum(n[p] * gram[p, q] * n[q] for p in range(3) for q in range(3))
-        nan = jnp.maximum(nan, jnp.finfo(nan.dtype).tiny)
-        return [sum(n[p] * sum(lights[k, p] * x[k][c] for k in ks) for p in range(3)) / nan
-                for c in range(len(x[0]))]
+        return [_safe_divide(sum(n[p] * sum(lights[k, p] * x[k][c] for k in ks)
+                                 for p in range(3)), nan) for c in range(len(x[0]))]
 
     brightest = functools.reduce(jnp.maximum, g)
     cases = [(brightest <= dark, Status.DARK), (~full_rank, Status.DEGENERATE)]
@@ -151,19 +165,37 @@ def _pixel_weighted(x, usable, inside, lights, thresholds):
 
     def colour_albedo(n):
         nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
-        nan = jnp.maximum(nan, jnp.finfo(dtype).tiny)
-        return [sum(n[p] * sum(wl[k][p] * x[k][c] for k in ks) for p in range(3)) / nan
-                for c in range(len(x[0]))]
+        return [_safe_divide(sum(n[p] * sum(wl[k][p] * x[k][c] for k in ks) for p in range(3)),
+                             nan) for c in range(len(x[0]))]
 
     cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))
     return _finish(b, sq, _count(used), cases, inside, None if len(x[0]) == 1 else colour_albedo)
 
 
+@jax.custom_jvp
+def _null_basis(lights):
+    """`(K-3, K)` orthonormal rows spanning the null space of $L^T$ (the misfit directions).
+
+    The basis is not unique, and JAX cannot differentiate the full SVD that finds it; the
+    tangent rule picks the smooth basis that stays orthogonal to $L$: $dN = -N\\,dL\\,L^+$
+    (it keeps $N L = 0$ and $N N^T = I$ to first order), so that the misfit $\\|N i\\|^2$,
+    which depends only on $N^T N = I - L L^+$, gets its exact gradient.
+    """
+    return jnp.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
+
+
+@_null_basis.defjvp
+def _null_basis_jvp(primals, tangents):
+    (lights,), (d_lights,) = primals, tangents
+    null = _null_basis(lights)
+    return null, -null @ d_lights @ jnp.linalg.pinv(lights)
+
+
 def _shared_constants(lights):
     """$L^+$, a basis of the null space of $L^T$, $L^T L$ and whether $L$ spans 3-D."""
-    u, s, _ = jnp.linalg.svd(lights, full_matrices=True)
+    s = jnp.linalg.svd(jax.lax.stop_gradient(lights), compute_uv=False)
     full_rank = s[2] > s[0] / MAX_LIGHT_CONDITION
-    return lights, jnp.linalg.pinv(lights), u[:, 3:].T, lights.T @ lights, full_rank
+    return lights, jnp.linalg.pinv(lights), _null_basis(lights), lights.T @ lights, full_rank
 
 
 @jax.jit

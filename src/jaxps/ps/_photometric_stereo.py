@@ -103,7 +103,9 @@ def photometric_stereo(
         if isinstance(lights, jax.core.Tracer):
             lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
         else:
-            lights = validate_lights(lights)
+            validate_lights(lights)  # the checks; it returns float32, so normalise here
+            lights = np.asarray(lights, np.float64)
+            lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
     elif lights_shape != (k, h, w, 3):
         raise ValueError(
             f"lights must be (K, 3) or (K, H, W, 3) = {(k, h, w, 3)} to match images "

@@ -335,6 +335,13 @@ def _check_albedo(albedo, hw, dtype):
 
 
 def _check_lights(lights, dtype):
+    if isinstance(lights, jax.core.Tracer):  # under jit or grad: shape checks only
+        if lights.shape == (3,):
+            lights = lights[None]
+        if lights.ndim != 2 or lights.shape[1] != 3:
+            raise ValueError(f"lights must be (K, 3) or (3,), got shape {lights.shape}")
+        lights = lights.astype(dtype)
+        return lights / jnp.linalg.norm(lights, axis=1, keepdims=True)
     lights = np.asarray(lights, np.float64)
     if lights.ndim == 1 and lights.shape == (3,):
         lights = lights[None]
