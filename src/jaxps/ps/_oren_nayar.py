@@ -144,6 +144,9 @@ def _ps_oren_nayar(images, lights, mask, sample_mask, thresholds, fixed, pool, f
                    max_steps, sigma0, sigma_max):
     _, h, w, _ = images.shape
     dtype = images.dtype
+    # BatchedLM is a while_loop, which reverse mode cannot differentiate: this solver's outputs
+    # are constants to `jax.grad` (zero gradients, documented in docs/photometric_stereo.md).
+    images, lights = jax.lax.stop_gradient(images), jax.lax.stop_gradient(lights)
     base = ps_l2(images, lights, mask, sample_mask, thresholds)
     core = eqx.filter_jit(_core)
     out = core(images, lights, mask, sample_mask, thresholds, base, fixed,

@@ -39,7 +39,7 @@ import numpy as np
 
 from ..core._linalg import REL_DET_MIN, solve3
 from ..core._status import Status
-from ._l2 import PSResult
+from ._l2 import PSResult, _safe_divide, _safe_sqrt
 
 __all__ = ["ps_barsky", "ps_irls", "ps_sbl"]
 
@@ -49,7 +49,7 @@ _CHUNK = 8192
 
 def _prepare(i, usable, thresholds):
     """Split one pixel's samples `(K, C)` into finite / unsaturated / used sets (as `l2` does)."""
-    dark, saturation, shadow = thresholds
+    _, saturation, shadow = thresholds
     finite = jnp.all(jnp.isfinite(i), axis=-1)
     i = jnp.where(finite[:, None], i, 0)
     grey = jnp.mean(i, axis=-1)
@@ -67,25 +67,29 @@ def _weighted_solve(w, lights, i):
 
 
 def _unit(b):
-    rho = jnp.linalg.norm(b)
+    rho = _safe_sqrt(jnp.sum(b * b))
     return b / jnp.where(rho > 0, rho, 1), rho
 
 
 def _finish(i, grey, finite, unsat, used, w, lights, thresholds, outlier, steps, converged):
     """Final weighted solve, per-channel albedo, inlier residual and the status of one pixel."""
     dark = thresholds[0]
-    tiny = jnp.finfo(i.dtype).tiny
-    w = jnp.where(used, w, 0)
+    # Infinite weights (1/|r| of a pixel with no light at all) are dropped, and the rest scaled
+    # to at most 1 (the weighted solve does not change): no inf or NaN even in a branch that
+    # `where` discards, where it would still poison the gradient.
+    w = jnp.where(used & jnp.isfinite(w), w, 0)
+    top = jnp.max(w)
+    w = w / jnp.where(top > 0, top, 1)
     b, a, rel_det_w = _weighted_solve(w, lights, i)  # (3, C)
     n, rho_grey = _unit(jnp.mean(b, axis=-1))
     r = lights.T @ (w[:, None] * i)
-    rho = (n @ r) / jnp.maximum(n @ a @ n, tiny)
+    rho = _safe_divide(n @ r, n @ a @ n)
     res = grey - jnp.mean(rho) * (lights @ n)
     scale = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(jnp.sum(used), 1).astype(i.dtype)
     inlier = used & (jnp.abs(res) <= outlier * scale)
     n_in = jnp.sum(inlier)
-    residual = jnp.sqrt(jnp.sum(jnp.where(inlier, res**2, 0))
-                        / jnp.maximum(n_in, 1).astype(i.dtype))
+    residual = _safe_sqrt(jnp.sum(jnp.where(inlier, res**2, 0))
+                          / jnp.maximum(n_in, 1).astype(i.dtype))
     # Whether the usable lights span 3-D at all (unweighted), and whether the weighted fit does.
     _, _, rel_det_used = _weighted_solve(used.astype(i.dtype), lights, grey)
     status = jnp.select(
@@ -140,7 +144,7 @@ def _pixel_barsky(i, usable, lights, thresholds, threshold, max_drop):
         b, _, rel_det = _weighted_solve(keep.astype(dtype), lights, grey)
         pred = lights @ b
         res = jnp.where(keep, grey - pred, 0)
-        rms = jnp.sqrt(jnp.sum(res**2) / jnp.maximum(n_keep, 1).astype(dtype)) / scale
+        rms = _safe_sqrt(jnp.sum(res**2) / jnp.maximum(n_keep, 1).astype(dtype)) / scale
         # A dropped dark sample must be a shadow (darker than predicted), a bright one a highlight.
         # (Lambert's clamp: a dark sample at 0 under a light behind the surface is no shadow.)
         slack = threshold * scale
@@ -150,7 +154,8 @@ def _pixel_barsky(i, usable, lights, thresholds, threshold, max_drop):
         score = rms + threshold * (nd + nb).astype(dtype)
         return jnp.where(ok, score, jnp.inf), keep
 
-    scores, keeps = jax.vmap(candidate)(jnp.asarray(n_dark), jnp.asarray(n_bright))
+    ranks = rank_dark.dtype  # int64 under jax_enable_x64: compare like with like
+    scores, keeps = jax.vmap(candidate)(jnp.asarray(n_dark, ranks), jnp.asarray(n_bright, ranks))
     best = jnp.argmin(scores)  # first of equal scores: fewest drops, shadows first
     keep = jnp.where(jnp.isfinite(scores[best]), keeps[best], used)
     w = keep.astype(dtype)
@@ -164,7 +169,11 @@ def _pixel_barsky(i, usable, lights, thresholds, threshold, max_drop):
 
 
 def _pixel_irls(i, usable, lights, thresholds, loss, delta, eps, rtol, max_steps, outlier):
-    i, grey, finite, unsat, used = _prepare(i, usable, thresholds)
+    i, grey_in, finite, unsat, used = _prepare(i, usable, thresholds)
+    # The reweighting loop runs on constants (reverse mode cannot differentiate a while_loop);
+    # the gradient is that of the final weighted solve in `_finish`, its weights held fixed.
+    grey, lights_in = jax.lax.stop_gradient(grey_in), lights
+    lights = jax.lax.stop_gradient(lights)
     dtype = i.dtype
     mean_used = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(jnp.sum(used), 1).astype(dtype)
     scale = jnp.maximum(mean_used, jnp.finfo(dtype).tiny)
@@ -192,7 +201,7 @@ def _pixel_irls(i, usable, lights, thresholds, loss, delta, eps, rtol, max_steps
 
     b, steps, done = jax.lax.while_loop(cond, body, (b0, jnp.array(0, jnp.int32),
                                                      jnp.array(False)))
-    return _finish(i, grey, finite, unsat, used, weights(b), lights, thresholds, outlier,
+    return _finish(i, grey_in, finite, unsat, used, weights(b), lights_in, thresholds, outlier,
                    steps, done)
 
 
@@ -202,7 +211,10 @@ def _pixel_irls(i, usable, lights, thresholds, loss, delta, eps, rtol, max_steps
 
 def _pixel_sbl(i, usable, lights, thresholds, lambda1, lambda2, gamma_min, rtol, max_steps,
                outlier):
-    i, grey, finite, unsat, used = _prepare(i, usable, thresholds)
+    i, grey_in, finite, unsat, used = _prepare(i, usable, thresholds)
+    # As in `_pixel_irls`: the loop on constants, the gradient from the final weighted solve.
+    grey, lights_in = jax.lax.stop_gradient(grey_in), lights
+    lights = jax.lax.stop_gradient(lights)
     dtype = i.dtype
     mean_used = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(jnp.sum(used), 1).astype(dtype)
     scale = jnp.maximum(mean_used, jnp.finfo(dtype).tiny)
@@ -234,7 +246,7 @@ def _pixel_sbl(i, usable, lights, thresholds, lambda1, lambda2, gamma_min, rtol,
     b_init = jnp.full((3,), jnp.inf, dtype)
     gamma, _, steps, done = jax.lax.while_loop(
         cond, body, (gamma0, b_init, jnp.array(0, jnp.int32), jnp.array(False)))
-    return _finish(i, grey, finite, unsat, used, 1 / gamma, lights, thresholds, outlier,
+    return _finish(i, grey_in, finite, unsat, used, 1 / gamma, lights_in, thresholds, outlier,
                    steps, done)
 
 
