@@ -369,6 +369,11 @@ def integrate(
     use $n_z$ floored at 0.05 (backfacing or grazing normals give a slope of at most ~20; for
     `"bilateral"` they get a weight ~$n_z^2$). The height is always finite.
 
+    Gradients (reverse mode) with respect to `normals` and `pixel_size` are finite for every
+    method, 0 for the normals left out; the CG solves are differentiated by the implicit
+    function theorem, `"bilateral"` with the weights of its last solve held fixed (see
+    "Gradients" in `docs/integration.md`).
+
     **Arguments:**
     - `normals`: `(H, W, 3)` normals, n_z >= 0.
     - `mask`: `(H, W)` bool, valid pixels (default: all).
