@@ -6,8 +6,14 @@ discontinuity-aware (bilateral) integration, with integrability diagnostics, and
 re-derived from a height map.
 """
 
-from ._integrate import INTEGRATION_METHODS, IntegrationResult, integrate, normals_from_height
-from ._integrate import gradients_from_normals, integrability_map
+from ._integrate import (
+    INTEGRATION_METHODS,
+    IntegrationResult,
+    gradients_from_normals,
+    integrability_map,
+    integrate,
+    normals_from_height,
+)
 
 __all__ = [
     "INTEGRATION_METHODS",

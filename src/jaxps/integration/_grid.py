@@ -27,7 +27,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-__all__ = ["GridSolve", "bilateral", "edge_div", "laplacian", "lsq_midpoint", "pcg"]
+__all__ = ["GridSolve", "bilateral", "edge_div", "laplacian", "lsq_midpoint", "pcg",
+           "solve_laplacian"]
 
 
 class GridSolve(NamedTuple):
@@ -104,6 +105,84 @@ def pcg(ah, av, rhs, x0, *, rtol, max_steps):
     return x, steps, jnp.linalg.norm(r) <= bound
 
 
+def _components(ah, av):
+    """Connected components of the graph of positive-weight edges: each pixel's label is the
+    smallest flat index in its component (min-label propagation with pointer jumping)."""
+    h, w = ah.shape[0], av.shape[1]
+    big = jnp.asarray(h * w, jnp.int32)
+    eh, ev = ah > 0, av > 0
+
+    def step(lab):
+        right = jnp.pad(jnp.where(eh, lab[:, 1:], big), ((0, 0), (0, 1)), constant_values=big)
+        left = jnp.pad(jnp.where(eh, lab[:, :-1], big), ((0, 0), (1, 0)), constant_values=big)
+        down = jnp.pad(jnp.where(ev, lab[1:, :], big), ((0, 1), (0, 0)), constant_values=big)
+        up = jnp.pad(jnp.where(ev, lab[:-1, :], big), ((1, 0), (0, 0)), constant_values=big)
+        lab = jnp.minimum(jnp.minimum(lab, jnp.minimum(right, left)), jnp.minimum(down, up))
+        return lab.reshape(-1)[lab]  # jump to the label's label: still in the component
+
+    def body(state):
+        lab, _ = state
+        new = step(lab)
+        return new, jnp.any(new != lab)
+
+    lab0 = jnp.arange(h * w, dtype=jnp.int32).reshape(h, w)
+    lab, _ = lax.while_loop(lambda s: s[1], body, (lab0, jnp.asarray(True)))
+    return lab
+
+
+def _project_to_range(b, ah, av):
+    """`b` minus, on each connected component $C$, $D \\mathbf 1_C \\sum_C b / \\sum_C D$ (with
+    $D$ = diag $L_a$), and 0 on pixels with no edge: the part of `b` that the transpose of the
+    solve `pcg` computes sees (see `solve_laplacian`)."""
+    diag = _edge_sum(ah, av)
+    lab = _components(ah, av).reshape(-1)
+    n = lab.shape[0]
+    sb = jax.ops.segment_sum(b.reshape(-1), lab, num_segments=n)
+    sd = jax.ops.segment_sum(diag.reshape(-1), lab, num_segments=n)
+    one = jnp.ones((), b.dtype)
+    ratio = jnp.where(sd > 0, sb / jnp.where(sd > 0, sd, one), 0)[lab].reshape(b.shape)
+    return jnp.where(diag > 0, b - diag * ratio, 0)
+
+
+def solve_laplacian(ah, av, rhs, x0, *, rtol, max_steps):
+    """`pcg` for $L_a x = b$, differentiable by the implicit function theorem.
+
+    Wrapped in `jax.lax.custom_linear_solve` (symmetric), so reverse mode never goes through
+    the CG loop: the cotangent $\\bar x$ is carried back by one more `pcg` solve
+    $L_a \\lambda = \\bar x$ (giving $\\bar b = \\lambda$ and $\\bar a_e = -\\lambda^\\top
+    (\\partial L_a / \\partial a_e) x$), with the same tolerance and step limit. $L_a$ is
+    singular: started from 0, CG returns the solution whose Jacobi-weighted ($D$ = diag $L_a$)
+    mean is that of `x0` on each connected component, i.e. $x = x_0 + G(b - L_a x_0)$ with
+    $G = (I - N (N^\\top D N)^{-1} N^\\top D) L_a^+$ ($N$: one indicator column per component).
+    The transpose solve therefore projects $\\bar x$ by $I - D N (N^\\top D N)^{-1} N^\\top$
+    first (`_project_to_range`), which also makes its system consistent. $\\bar b$ is exact up
+    to a constant per component, which the divergence of an integration problem ignores. Not
+    differentiated: how the per-component constant moves when the weights `ah`, `av` change
+    (0 for `"lsq"`, whose weights are constant; see `docs/integration.md`), and `x0`.
+
+    Returns `(x, steps, converged)` of the forward solve.
+    """
+    x0 = lax.stop_gradient(x0)
+
+    def matvec(x):
+        return laplacian(x, ah, av)
+
+    def solve(_, b):
+        x, steps, ok = pcg(lax.stop_gradient(ah), lax.stop_gradient(av), b, x0, rtol=rtol,
+                           max_steps=max_steps)
+        return x, (steps, ok)
+
+    def transpose_solve(_, b):
+        a_h, a_v = lax.stop_gradient(ah), lax.stop_gradient(av)
+        x, steps, ok = pcg(a_h, a_v, _project_to_range(b, a_h, a_v), jnp.zeros_like(b),
+                           rtol=rtol, max_steps=max_steps)
+        return x, (steps, ok)
+
+    x, (steps, ok) = lax.custom_linear_solve(matvec, rhs, solve, transpose_solve,
+                                             symmetric=True, has_aux=True)
+    return x, steps, ok
+
+
 def _edges(valid):
     eh = valid[:, 1:] & valid[:, :-1]
     ev = valid[1:, :] & valid[:-1, :]
@@ -125,8 +204,8 @@ def lsq_midpoint(gc, gr, valid, *, rtol, max_steps):
     ah, av = eh.astype(dt), ev.astype(dt)
     gh = ah * (gc[:, 1:] + gc[:, :-1]) / 2
     gv = av * (gr[1:, :] + gr[:-1, :]) / 2
-    z, steps, ok = pcg(ah, av, edge_div(gh, gv), jnp.zeros_like(gc), rtol=rtol,
-                       max_steps=max_steps)
+    z, steps, ok = solve_laplacian(ah, av, edge_div(gh, gv), jnp.zeros_like(gc), rtol=rtol,
+                                   max_steps=max_steps)
     return GridSolve(z, jnp.asarray(1), steps, ok)
 
 
@@ -145,8 +224,17 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
     `max_steps` reweightings (the energy as Cao et al.'s code computes it, see `energy`);
     each weighted system is solved by warm-started `pcg`.
 
+    Gradients (reverse mode): the reweighting loop runs on `stop_gradient` inputs, and its last
+    weighted least-squares solve is then repeated, warm-started from its own answer (so it
+    takes 0-2 CG steps), by `solve_laplacian` with the weights of that solve held fixed: the
+    gradient is that of the last weighted least-squares problem, by the implicit function
+    theorem; how the weights (and the stopping step) move with the normals is not
+    differentiated.
+
     All maps `(H, W)`; returns `GridSolve` with `steps` the reweighting count.
     """
+    mu_in, mv_in, bu_in, bv_in = mu, mv, bu, bv
+    mu, mv, bu, bv = (lax.stop_gradient(a) for a in (mu, mv, bu, bv))
     eh, ev = _edges(valid)
     dt = mu.dtype
     eh, ev = eh.astype(dt), ev.astype(dt)
@@ -176,14 +264,18 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
         return inner + jnp.sum(no_right * wu * bu**2 + no_left * (one - wu) * bu**2
                                + no_down * wv * bv**2 + no_up * (one - wv) * bv**2)
 
-    def solve(z, wu, wv):
+    def system(wu, wv, mu, mv, bu, bv):
         wr, wl = wu[:, :-1], one - wu[:, 1:]
         wd, wup = wv[:-1, :], one - wv[1:, :]
         ah = eh * (wr * mu[:, :-1] ** 2 + wl * mu[:, 1:] ** 2)
         gh = eh * (wr * mu[:, :-1] * bu[:, :-1] + wl * mu[:, 1:] * bu[:, 1:])
         av = ev * (wd * mv[:-1, :] ** 2 + wup * mv[1:, :] ** 2)
         gv = ev * (wd * mv[:-1, :] * bv[:-1, :] + wup * mv[1:, :] * bv[1:, :])
-        return pcg(ah, av, edge_div(gh, gv), z, rtol=cg_rtol, max_steps=cg_max_steps)
+        return ah, av, edge_div(gh, gv)
+
+    def solve(z, wu, wv):
+        ah, av, rhs = system(wu, wv, mu, mv, bu, bv)
+        return pcg(ah, av, rhs, z, rtol=cg_rtol, max_steps=cg_max_steps)
 
     def weights(z):
         dh, dv = steps_of(z)
@@ -197,20 +289,24 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
         return wu, wv
 
     def cond(state):
-        _, _, _, e, e_old, i, _, _ = state
+        _, _, _, _, _, e, e_old, i, _, _ = state
         change = jnp.abs(e - e_old) > tol * e_old
         return (i < max_steps) & ((i == 0) | change)
 
     def body(state):
-        z, wu, wv, e, _, i, n_cg, _ = state
-        z, n, ok = solve(z, wu, wv)
-        wu, wv = weights(z)
-        return z, wu, wv, energy(z, wu, wv), e, i + 1, n_cg + n, ok
+        z, wu, wv, _, _, e, _, i, n_cg, _ = state
+        z_new, n, ok = solve(z, wu, wv)
+        wu_new, wv_new = weights(z_new)
+        return z_new, wu_new, wv_new, wu, wv, energy(z_new, wu_new, wv_new), e, i + 1, n_cg + n, ok
 
     z0 = jnp.zeros_like(mu)
     e0 = energy(z0, half, half)
-    init = (z0, half, half, e0, e0, jnp.asarray(0), jnp.asarray(0), jnp.asarray(True))
-    z, _, _, e, e_old, i, n_cg, cg_ok = lax.while_loop(cond, body, init)
+    init = (z0, half, half, half, half, e0, e0, jnp.asarray(0), jnp.asarray(0),
+            jnp.asarray(True))
+    z, _, _, wu, wv, e, e_old, i, n_cg, cg_ok = lax.while_loop(cond, body, init)
     converged = (jnp.abs(e - e_old) <= tol * e_old) & cg_ok
-    return GridSolve(z, i, n_cg, converged)
+    # The last solve again, differentiable in mu, mv, bu, bv with its weights fixed.
+    ah, av, rhs = system(wu, wv, mu_in, mv_in, bu_in, bv_in)
+    z, n, ok = solve_laplacian(ah, av, rhs, z, rtol=cg_rtol, max_steps=cg_max_steps)
+    return GridSolve(z, i, n_cg + n, converged & ok)
 

@@ -106,10 +106,14 @@ def _check_intrinsics(intrinsics):
 def gradients_from_normals(
     normals: Float[Array, "H W 3"], mask: Bool[Array, "H W"]
 ) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:
-    """Surface gradients `(p, q)` = (dz/dx, dz/dy), y up; 0 outside `mask` and for NaN normals."""
-    nx, ny, nz = normals[..., 0], normals[..., 1], normals[..., 2]
-    nz = jnp.maximum(nz, _MIN_NZ)
+    """Surface gradients `(p, q)` = (dz/dx, dz/dy), y up; 0 outside `mask` and for NaN normals.
+
+    $n_z$ is floored at 0.05. Gradients with respect to `normals` are finite (0 for the pixels
+    left out): NaN normals are replaced before dividing, not after.
+    """
     ok = mask & jnp.all(jnp.isfinite(normals), axis=-1)
+    n = jnp.where(ok[..., None], normals, 0)  # no NaN in the branch `where` leaves out
+    nx, ny, nz = n[..., 0], n[..., 1], jnp.maximum(n[..., 2], _MIN_NZ)
     p = jnp.where(ok, -nx / nz, 0)
     q = jnp.where(ok, -ny / nz, 0)
     return p, q
@@ -120,10 +124,11 @@ def _unit_normals(normals, mask):
     """Unit normals, `(0, 0, 1)` where non-finite or of zero length; and the valid mask."""
     finite = jnp.all(jnp.isfinite(normals), axis=-1)
     n = jnp.where(finite[..., None], normals, 0)
-    norm = jnp.linalg.norm(n, axis=-1, keepdims=True)
-    ok = finite & (norm[..., 0] > 1e-6)
+    sq = jnp.sum(n * n, axis=-1, keepdims=True)
+    ok = finite & (sq[..., 0] > 1e-12) & jnp.isfinite(sq[..., 0])
     one = jnp.ones((), n.dtype)
-    n = jnp.where(ok[..., None], n / jnp.where(ok[..., None], norm, one), 0)
+    # sqrt of the guarded square: the length's gradient at a zero normal would be 0/0
+    n = jnp.where(ok[..., None], n / jnp.sqrt(jnp.where(ok[..., None], sq, one)), 0)
     n = n.at[..., 2].set(jnp.where(ok, n[..., 2], one))
     return n, mask & ok
 
@@ -185,9 +190,8 @@ def _residual_map(z, gc, gr, valid):
                 + jnp.pad(b, ((1, 0), (0, 0)), constant_values=zero)
                 + jnp.pad(b, ((0, 1), (0, 0)), constant_values=zero))
 
-    total = spread(rh, rv)
-    count = spread(eh.astype(dt), ev.astype(dt))
-    return jnp.sqrt(total / jnp.maximum(count, jnp.ones((), dt)))
+    total = spread(rh, rv) / jnp.maximum(spread(eh.astype(dt), ev.astype(dt)), jnp.ones((), dt))
+    return jnp.where(total > 0, jnp.sqrt(jnp.where(total > 0, total, 1)), 0)  # sqrt'(0) = inf
 
 
 def integrability_map(
@@ -277,6 +281,10 @@ def _fc_orthographic(normals, mask, pixel_size):
     length-3 axis or `.at[].set` would each cost a pass over the image).
     """
     nx, ny, nz = normals[..., 0], normals[..., 1], normals[..., 2]
+    # Non-finite normals -> 0 before any arithmetic, so that the branches `where` leaves out
+    # carry no NaN into the gradient (elementwise: fused into the same pass).
+    finite = jnp.isfinite(nx) & jnp.isfinite(ny) & jnp.isfinite(nz)
+    nx, ny, nz = (jnp.where(finite, a, 0) for a in (nx, ny, nz))
     sq = nx * nx + ny * ny + nz * nz
     ok = mask & jnp.isfinite(sq) & (sq > 1e-12)
     inv = jax.lax.rsqrt(jnp.where(ok, sq, 1))
@@ -361,6 +369,11 @@ def integrate(
     use $n_z$ floored at 0.05 (backfacing or grazing normals give a slope of at most ~20; for
     `"bilateral"` they get a weight ~$n_z^2$). The height is always finite.
 
+    Gradients (reverse mode) with respect to `normals` and `pixel_size` are finite for every
+    method, 0 for the normals left out; the CG solves are differentiated by the implicit
+    function theorem, `"bilateral"` with the weights of its last solve held fixed (see
+    "Gradients" in `docs/integration.md`).
+
     **Arguments:**
     - `normals`: `(H, W, 3)` normals, n_z >= 0.
     - `mask`: `(H, W)` bool, valid pixels (default: all).
@@ -379,7 +392,8 @@ def integrate(
     """
     if method not in INTEGRATION_METHODS:
         raise ValueError(f"method must be one of {INTEGRATION_METHODS}, got {method!r}")
-    if not (np.isfinite(pixel_size) and pixel_size > 0):
+    ps = jnp.asarray(pixel_size)  # a traced pixel_size (jax.grad) passes through
+    if not bool(jnp.isfinite(ps) & (ps > 0)):
         raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     if not (np.isfinite(k) and k > 0):
         raise ValueError(f"k must be positive, got {k}")
