@@ -11,6 +11,7 @@ EXAMPLES = pathlib.Path(__file__).resolve().parents[1] / "examples"
 NEEDS_DATA = {"tutorial_yaleb.py", "icp_diligent.py"}
 OUTPUTS = {
     "quickstart.py": ["quickstart_error.png"],
+    "calibrate_lights.py": ["calibrate_lights.png"],
     "tutorial_yaleb.py": ["tutorial_yaleb.png"],
     "icp_diligent.py": ["icp_bear.png"],
     "report_demo.py": ["run/report.html", "run/report_files/normal_error_maps.png"],
