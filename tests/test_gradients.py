@@ -67,7 +67,7 @@ def test_photometric_stereo_gradients_match_finite_differences(method):
 
 def test_weighted_path_and_colour_gradients_match_finite_differences():
     with jax.enable_x64(True):
-        images, lights, mask, face = _scene()
+        images, lights, _, _ = _scene()
         colour = np.stack([images, 0.8 * images, 0.5 * images], axis=-1)
         wa = _weights(colour.shape[1:], 4)
 
