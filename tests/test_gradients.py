@@ -78,6 +78,10 @@ def test_weighted_path_and_colour_gradients_match_finite_differences():
         g = jax.grad(loss, argnums=(0, 1))(colour, lights)
         assert all(np.isfinite(np.asarray(a)).all() for a in g)
         check_grads(lambda lt: loss(colour, lt), (lights,), order=1, modes=["rev"], eps=1e-6)
+        # Per-pixel (near) lights, the field `near_photometric_stereo` solves with.
+        field = np.broadcast_to(lights[:, None, None, :], images.shape + (3,)).copy()
+        field += 0.01 * np.random.default_rng(8).normal(size=field.shape)
+        check_grads(lambda f: loss(colour, f), (field,), order=1, modes=["rev"], eps=1e-6)
 
 
 def test_render_and_angular_error_gradients():
@@ -148,3 +152,21 @@ def test_barsky_gradient_is_that_of_its_chosen_subset():
             return jnp.sum(wn * res.normals)
 
         check_grads(loss, (finite,), order=1, modes=["rev"], eps=1e-6)
+
+
+def test_roughness_fit_gradients_are_finite_inside_and_at_the_bound():
+    s = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(24),
+                                     jaxps.synthetic.scanner_lights(20.0))
+    rough = jaxps.render_oren_nayar(s.normals, s.albedo, s.lights, 0.3)
+
+    def sigma(images, per):
+        fit = jaxps.fit_roughness(images, s.normals, s.albedo, s.lights, mask=s.mask, per=per)
+        return jnp.sum(jnp.asarray(fit.sigma))
+
+    # A rough surface: an interior optimum, differentiated by optimistix's implicit adjoint.
+    g = np.asarray(jax.grad(sigma)(rough, "global"))
+    assert np.isfinite(g).all() and np.abs(g).sum() > 0
+    # Lambertian images: the fit ends at sigma = 0, where the gradient is 0, not an error.
+    g = np.asarray(jax.grad(sigma)(s.images, "global"))
+    assert np.isfinite(g).all() and np.all(g == 0)
+    assert np.isfinite(np.asarray(jax.grad(sigma)(rough, "pixel"))).all()

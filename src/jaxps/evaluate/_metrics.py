@@ -7,6 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ..core._safe import safe_norm
+
 __all__ = [
     "angular_error",
     "angular_stats",
@@ -42,20 +44,13 @@ def angular_error(
     return err
 
 
-def _norm(v):
-    """|v| over the last axis, with a zero gradient at v = 0 instead of NaN."""
-    sq = jnp.sum(v * v, axis=-1)
-    ok = sq > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1)), 0)
-
-
 @jax.jit
 def _angular_error(a, b):
     # Written so that its gradient is finite everywhere: equal normals (|a x b| = 0, a kink)
     # and zero normals (a background pixel) give a zero gradient rather than NaN.
-    a = a / jnp.maximum(_norm(a), 1e-12)[..., None]
-    b = b / jnp.maximum(_norm(b), 1e-12)[..., None]
-    cross = _norm(jnp.cross(a, b))
+    a = a / jnp.maximum(safe_norm(a), 1e-12)[..., None]
+    b = b / jnp.maximum(safe_norm(b), 1e-12)[..., None]
+    cross = safe_norm(jnp.cross(a, b))
     dot = jnp.sum(a * b, axis=-1)
     both_zero = (cross == 0) & (dot == 0)
     return jnp.degrees(jnp.arctan2(cross, jnp.where(both_zero, 1, dot)))

@@ -21,8 +21,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core._safe import safe_divide
 from ..core._status import Status
-from ._l2 import PSResult, _count, _finish, _safe_divide, _samples
+from ._l2 import PSResult, _count, _finish, _samples
 
 __all__ = ["MAX_L1_LIGHTS", "ps_l1"]
 
@@ -62,7 +63,7 @@ def _pixel_l1(x, usable, inside, lights, thresholds, triples, outlier):
     def colour_albedo(n):  # per channel, least squares over the inliers at the L1 normal
         s = [jnp.where(inlier[k], shade(n, k), 0) for k in ks]
         ss = sum(v * v for v in s)
-        return [_safe_divide(sum(s[k] * x[k][c] for k in ks), ss) for c in range(len(x[0]))]
+        return [safe_divide(sum(s[k] * x[k][c] for k in ks), ss) for c in range(len(x[0]))]
 
     cases.append((~jnp.isfinite(best), Status.DEGENERATE))  # no usable triple spans 3-D
     return _finish(b, sq, _count(inlier), cases, inside,

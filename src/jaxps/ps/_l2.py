@@ -18,6 +18,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float, Int
 
 from ..core._linalg import REL_DET_MIN, solve3
+from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
@@ -79,28 +80,13 @@ def _samples(x, usable, thresholds):
     return x, g, used, cases
 
 
-def _safe_sqrt(x):
-    """sqrt(max(x, 0)) whose gradient is 0, not inf or NaN, at x <= 0 (a dark pixel's albedo, an
-    exact fit's residual): the square root only ever sees positive numbers (jax-md's
-    `safe_mask`; a `jnp.where` after the sqrt would still pass its infinite slope back)."""
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1)), 0)
-
-
-def _safe_divide(num, den):
-    """num / den, and 0 (with a zero gradient) where den is below the dtype's eps: the
-    per-channel albedo of a pixel with no usable sample or no normal."""
-    ok = den > jnp.finfo(den.dtype).eps
-    return jnp.where(ok, num / jnp.where(ok, den, 1), 0)
-
-
 def _finish(b, sq, n_used, cases, inside, colour_albedo):
     """Normal, albedo, status, residual from $b = \\rho n$ and the squared misfit `sq`."""
-    rho_grey = _safe_sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
+    rho_grey = safe_sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
     inv_rho = 1 / jnp.where(rho_grey > 0, rho_grey, 1)
     n = [v * inv_rho for v in b]
     rho = [rho_grey] if colour_albedo is None else colour_albedo(n)
-    residual = _safe_sqrt(sq / jnp.maximum(n_used, 1).astype(sq.dtype))
+    residual = safe_sqrt(sq / jnp.maximum(n_used, 1).astype(sq.dtype))
     status = first_status([
         (~inside, Status.MASKED),
         *cases,
@@ -137,7 +123,7 @@ def _pixel_all_used(x, usable, inside, shared, thresholds):
 
     def colour_albedo(n):  # rho_c = n.(L^T i_c) / n.(L^T L) n: the channel's LS albedo at n
         nan = sum(n[p] * gram[p, q] * n[q] for p in range(3) for q in range(3))
-        return [_safe_divide(sum(n[p] * sum(lights[k, p] * x[k][c] for k in ks)
+        return [safe_divide(sum(n[p] * sum(lights[k, p] * x[k][c] for k in ks)
                                  for p in range(3)), nan) for c in range(len(x[0]))]
 
     brightest = functools.reduce(jnp.maximum, g)
@@ -165,7 +151,7 @@ def _pixel_weighted(x, usable, inside, lights, thresholds):
 
     def colour_albedo(n):
         nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
-        return [_safe_divide(sum(n[p] * sum(wl[k][p] * x[k][c] for k in ks) for p in range(3)),
+        return [safe_divide(sum(n[p] * sum(wl[k][p] * x[k][c] for k in ks) for p in range(3)),
                              nan) for c in range(len(x[0]))]
 
     cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))

@@ -39,7 +39,8 @@ import numpy as np
 
 from ..core._linalg import REL_DET_MIN, solve3
 from ..core._status import Status
-from ._l2 import PSResult, _safe_divide, _safe_sqrt
+from ..core._safe import safe_divide, safe_sqrt
+from ._l2 import PSResult
 
 __all__ = ["ps_barsky", "ps_irls", "ps_sbl"]
 
@@ -67,7 +68,7 @@ def _weighted_solve(w, lights, i):
 
 
 def _unit(b):
-    rho = _safe_sqrt(jnp.sum(b * b))
+    rho = safe_sqrt(jnp.sum(b * b))
     return b / jnp.where(rho > 0, rho, 1), rho
 
 
@@ -83,12 +84,12 @@ def _finish(i, grey, finite, unsat, used, w, lights, thresholds, outlier, steps,
     b, a, rel_det_w = _weighted_solve(w, lights, i)  # (3, C)
     n, rho_grey = _unit(jnp.mean(b, axis=-1))
     r = lights.T @ (w[:, None] * i)
-    rho = _safe_divide(n @ r, n @ a @ n)
+    rho = safe_divide(n @ r, n @ a @ n)
     res = grey - jnp.mean(rho) * (lights @ n)
     scale = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(jnp.sum(used), 1).astype(i.dtype)
     inlier = used & (jnp.abs(res) <= outlier * scale)
     n_in = jnp.sum(inlier)
-    residual = _safe_sqrt(jnp.sum(jnp.where(inlier, res**2, 0))
+    residual = safe_sqrt(jnp.sum(jnp.where(inlier, res**2, 0))
                           / jnp.maximum(n_in, 1).astype(i.dtype))
     # Whether the usable lights span 3-D at all (unweighted), and whether the weighted fit does.
     _, _, rel_det_used = _weighted_solve(used.astype(i.dtype), lights, grey)
@@ -144,7 +145,7 @@ def _pixel_barsky(i, usable, lights, thresholds, threshold, max_drop):
         b, _, rel_det = _weighted_solve(keep.astype(dtype), lights, grey)
         pred = lights @ b
         res = jnp.where(keep, grey - pred, 0)
-        rms = _safe_sqrt(jnp.sum(res**2) / jnp.maximum(n_keep, 1).astype(dtype)) / scale
+        rms = safe_sqrt(jnp.sum(res**2) / jnp.maximum(n_keep, 1).astype(dtype)) / scale
         # A dropped dark sample must be a shadow (darker than predicted), a bright one a highlight.
         # (Lambert's clamp: a dark sample at 0 under a light behind the surface is no shadow.)
         slack = threshold * scale

@@ -42,6 +42,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..core._batched_lm import BatchedLM, solve_pixels
 from ..core._reduce import sum0
+from ..core._safe import safe_sqrt
 from ..core._status import Status, first_status
 
 __all__ = [
@@ -381,11 +382,11 @@ def _solve_one(data, s0, s_max, form, refit, solver, max_steps, min_samples, red
     r = _residuals(s_proj, data, form, refit)
     r0 = _residuals(jnp.zeros((), dtype), data, form, refit)
     denom = jnp.maximum(n, 1).astype(dtype)
-    rms = jnp.sqrt(jnp.sum(r**2) / denom)
-    rms0 = jnp.sqrt(jnp.sum(r0**2) / denom)
+    rms = safe_sqrt(jnp.sum(r**2) / denom)
+    rms0 = safe_sqrt(jnp.sum(r0**2) / denom)
     status = first_status([(n < min_samples, Status.TOO_FEW_LIGHTS),
                            (~converged, Status.NOT_CONVERGED), (at_bound, Status.AT_BOUND)])
-    sigma = jnp.where(n < min_samples, 0, jnp.sqrt(jnp.maximum(s_proj, 0)))
+    sigma = jnp.where(n < min_samples, 0, safe_sqrt(s_proj))  # finite gradient at s = 0
     sigma = jnp.where(jnp.isfinite(sigma), sigma, 0).astype(dtype)
     steps = sol.stats["num_steps"].astype(jnp.int32)
     rms = jnp.where(jnp.isfinite(rms), rms, 0).astype(dtype)
@@ -407,6 +408,9 @@ def _fit_pixels(data, s0, s_max, form, refit, solver, max_steps, min_samples):
         done = jnp.ones((n_px,), bool)
         steps = jnp.zeros((n_px,), jnp.int32)
     else:
+        # BatchedLM is a while_loop, which reverse mode cannot differentiate: its roughness is
+        # a constant to `jax.grad` (the closed form above is differentiated as usual).
+        data = jax.lax.stop_gradient(data)
         y0 = jnp.full((n_px,), s0, dtype)
         if form == "qualitative" and refit:
             y0 = _exact_pixels(data, s_max).astype(dtype)
@@ -424,11 +428,11 @@ def _fit_pixels(data, s0, s_max, form, refit, solver, max_steps, min_samples):
     r = fn(s_proj[:, None], data)
     r0 = fn(jnp.zeros((n_px, 1), dtype), data)
     denom = jnp.maximum(n, 1).astype(dtype)
-    rms = jnp.sqrt(sum0(r**2) / denom)
-    rms0 = jnp.sqrt(sum0(r0**2) / denom)
+    rms = safe_sqrt(sum0(r**2) / denom)
+    rms0 = safe_sqrt(sum0(r0**2) / denom)
     status = first_status([(n < min_samples, Status.TOO_FEW_LIGHTS),
                            (~done, Status.NOT_CONVERGED), (at_bound, Status.AT_BOUND)])
-    sigma = jnp.where(n < min_samples, 0, jnp.sqrt(s_proj)).astype(dtype)
+    sigma = jnp.where(n < min_samples, 0, safe_sqrt(s_proj)).astype(dtype)
     return sigma, status, steps, rms.astype(dtype), rms0.astype(dtype), n.astype(jnp.int32)
 
 
