@@ -288,7 +288,9 @@ def plot(subject, maps, ok, floor_map, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = ["floor (half vs half)"] + list(maps)
+    shown = [n for n in ("none", "mean", "frontal", "semi_calibrated_prior1", "integrability",
+                         "shape_prior_loo", "oracle_reference_intensities") if n in maps]
+    names = ["floor (half vs half)"] + shown
     fig, axes = plt.subplots(1, len(names), figsize=(2.2 * len(names), 2.9))
     for ax, name in zip(axes, names):
         err = floor_map if name.startswith("floor") else maps[name]
@@ -299,7 +301,7 @@ def plot(subject, maps, ok, floor_map, path):
     fig.colorbar(im, ax=axes, fraction=0.02, label="angular error (deg)")
     fig.suptitle(f"{subject}: five cross lights against the 50-degree semi-calibrated reference",
                  fontsize=8)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=80)
     plt.close(fig)
 
 
