@@ -10,6 +10,10 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
+# The command line turns on a persistent compilation cache in the user's cache folder; tests
+# that call `jaxps.cli.main` in this process leave it off (test_cli.py tests it on its own).
+os.environ.setdefault("JAXPS_CACHE_DIR", "off")
+
 
 def data_dir() -> pathlib.Path:
     """The shared real captures: $JAXPS_DATA, else ../shared/data beside the checkout."""

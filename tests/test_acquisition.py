@@ -186,3 +186,13 @@ def test_capture_errors(tmp_path, data):
         acq.load_capture(sorted(folder.glob("*A+0*.pgm"))[:3], mask=tmp_path / "m.png")
     with pytest.raises(ValueError, match="empty list"):
         acq.load_capture([])
+
+
+def test_srgb_decoding_matches_colour_science():
+    import colour
+
+    from jaxps.acquisition._files import srgb_to_linear
+
+    v = np.linspace(0, 1, 1001, dtype=np.float32)
+    np.testing.assert_allclose(srgb_to_linear(v), colour.cctf_decoding(v, function="sRGB"),
+                               rtol=1e-6, atol=1e-7)

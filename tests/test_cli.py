@@ -164,3 +164,21 @@ def test_parser_lists_the_intensity_methods_of_the_library():
     from jaxps.cli import _args
 
     assert _args.INTENSITY_METHODS == jaxps.INTENSITY_METHODS
+
+
+def test_compilation_cache_fills_its_folder_and_can_be_turned_off(tmp_path):
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
+    cache = tmp_path / "cache"
+    argv = [sys.executable, "-m", "jaxps", "demo", "--size", "40", "--out"]
+    subprocess.run(argv + [str(tmp_path / "a")], env={**env, "JAXPS_CACHE_DIR": str(cache)},
+                   check=True, capture_output=True, timeout=300)
+    assert len(list(cache.iterdir())) >= 3  # photometric stereo, integration, ... programs
+    off = tmp_path / "off"
+    subprocess.run(argv + [str(tmp_path / "b")], env={**env, "JAXPS_CACHE_DIR": "off",
+                                                      "XDG_CACHE_HOME": str(off)},
+                   check=True, capture_output=True, timeout=300)
+    assert not off.exists()

@@ -90,10 +90,19 @@ def read_image(path: PathLike, *, linearize: str = "auto") -> Float[np.ndarray, 
         linearize == "auto" and raw.dtype == np.uint8 and path.lower().endswith(_SRGB_EXTENSIONS)
     )
     if decode:
-        import colour  # deferred: importing colour-science takes ~1 s
-
-        img = np.asarray(colour.cctf_decoding(img, function="sRGB"), dtype=np.float32)
+        img = srgb_to_linear(img)
     return np.ascontiguousarray(img)
+
+
+def srgb_to_linear(v: np.ndarray) -> np.ndarray:
+    """The sRGB decoding curve (IEC 61966-2-1), as `colour.cctf_decoding(v, function="sRGB")`.
+
+    Written out because importing colour-science for it took about 1 s per command (it imports
+    matplotlib); tests/test_acquisition.py checks it against colour-science.
+    """
+    v = np.asarray(v, np.float32)
+    return np.where(v <= 0.04045, v / 12.92,
+                    ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
 def load_stack(

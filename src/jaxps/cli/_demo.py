@@ -7,7 +7,7 @@ import os
 import numpy as np
 
 from .. import synthetic
-from ..acquisition import read_image
+from ..acquisition import read_mask
 from ..evaluate import angular_error
 from ..report._writers import read_normal_map, write_json
 from ._reconstruct import reconstruct
@@ -43,7 +43,7 @@ def run(args) -> int:
     summary = reconstruct(paths, args.out, lights=os.path.join(frames_dir, "lights.txt"),
                           ambient=amb_path, mask=mask_path, intensities="none")
     normals = read_normal_map(os.path.join(args.out, "normals.png"))
-    mask = read_image(mask_path) > 0
+    mask = read_mask(mask_path)
     err = np.asarray(angular_error(normals, scene.normals, mask=mask))[mask]
     height = np.load(os.path.join(args.out, "height.npy"))
     truth = np.asarray(scene.height)
