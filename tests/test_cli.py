@@ -1,6 +1,7 @@
 """End-to-end: the `jaxps` command line on the shared real captures and the built-in demo."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -9,8 +10,8 @@ import pytest
 
 import jaxps
 from jaxps import acquisition as acq
-from jaxps.report._writers import read_normal_map
 from jaxps.cli import main
+from jaxps.report._writers import read_normal_map
 
 FIVE = ["A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20"]
 
@@ -167,10 +168,6 @@ def test_parser_lists_the_intensity_methods_of_the_library():
 
 
 def test_compilation_cache_fills_its_folder_and_can_be_turned_off(tmp_path):
-    import os
-    import subprocess
-    import sys
-
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     cache = tmp_path / "cache"
     argv = [sys.executable, "-m", "jaxps", "demo", "--size", "40", "--out"]
