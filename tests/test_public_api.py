@@ -32,7 +32,9 @@ ADDED = {
 # `load_capture(equalize=False)` and `reconstruct(equalize=False)` became
 # `intensities="frontal"` (per-frame intensities estimated and divided out by default), and
 # `Capture` gained `intensities` and `intensity_method`. Issue 18: `PS_METHODS` gained `"l1"`
-# (exact L1 photometric stereo).
+# (exact L1 photometric stereo). Issue 15: every `key` parameter (fit_brdf,
+# brdf_photometric_stereo, render_scene, render_corrupted, perturb_lights, sweep) is annotated
+# `jax.Array | int` (an int seed is accepted); those snapshot entries were rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 
