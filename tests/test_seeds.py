@@ -56,7 +56,7 @@ def test_render_scene_and_render_corrupted_seed():
     c = render_scene(surf, lights, noise=0.05, key=4).images
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
     assert not np.array_equal(np.asarray(a), np.asarray(c))
-    kw = dict(shadows=False, noise=0.05)
+    kw = {"shadows": False, "noise": 0.05}
     a = render_corrupted(surf, lights, key=3, **kw).images
     b = render_corrupted(surf, lights, key=jax.random.key(3), **kw).images
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -70,7 +70,7 @@ def test_perturb_lights_seed():
 
 
 def test_sweep_seed():
-    kw = dict(values=(2.0,), methods=("l2",), h=24)
+    kw = {"values": (2.0,), "methods": ("l2",), "h": 24}
     a = sweep("light_error_deg", key=5, **kw)
     b = sweep("light_error_deg", key=jax.random.key(5), **kw)
     assert a == b
@@ -81,8 +81,8 @@ def test_brdf_photometric_stereo_seed():
     surf = face_like(20)
     lights = ring_lights(6, 35.0, centre=True)
     images = render_scene(surf, lights).images
-    kw = dict(mask=np.asarray(surf.mask), method="mlp", iterations=1, max_steps=3,
-              n_samples=500, hidden=(4,))
+    kw = {"mask": np.asarray(surf.mask), "method": "mlp", "iterations": 1, "max_steps": 3,
+          "n_samples": 500, "hidden": (4,)}
     a = jaxps.brdf_photometric_stereo(images, lights, key=1, **kw)
     b = jaxps.brdf_photometric_stereo(images, lights, key=jax.random.key(1), **kw)
     np.testing.assert_array_equal(np.asarray(a.normals), np.asarray(b.normals))

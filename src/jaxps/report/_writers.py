@@ -5,13 +5,14 @@ OpenCV is imported by the functions that use it.
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 
 import numpy as np
 
-__all__ = ["read_normal_map", "write_albedo", "write_json", "write_normal_map", "write_ply",
-           "write_preview"]
+__all__ = ["read_normal_map", "write_albedo", "write_csv", "write_json", "write_normal_map",
+           "write_ply", "write_preview"]
 
 
 def write_normal_map(path, normals: np.ndarray) -> None:
@@ -88,10 +89,37 @@ def write_ply(path, height: np.ndarray, mask: np.ndarray, *, pixel_size: float =
     return len(face)
 
 
+def _plain(value):
+    """`value` with NumPy scalars and arrays as Python numbers and lists, tuples as lists, and
+    every negative zero as 0.0 (recursively)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and value == 0.0:
+        return 0.0  # -0.0 == 0.0: both become +0.0
+    return value
+
+
 def write_json(path, data: dict) -> None:
+    """`data` as indented JSON; NumPy values become plain numbers and lists, and `-0.0` (a
+    light direction's zero component, say) is written as `0.0`."""
     with open(path, "w") as f:
-        json.dump(data, f, indent=2)
+        json.dump(_plain(data), f, indent=2)
         f.write("\n")
+
+
+def write_csv(path, rows) -> None:
+    """Rows of dicts as CSV: a header from the keys of the first row, one line per row."""
+    rows = [_plain(r) for r in rows]
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else [])
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 def write_preview(path, normals, albedo, height, mask, title: str = "", *,
