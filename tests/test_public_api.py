@@ -27,6 +27,8 @@ ADDED = {
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
                           "check_file", "check_frames", "drop_flagged", "estimate_shifts",
                           "load_psm", "register_frames", "shift_frames"],
+    # Issue 15: a reconstruction as a textured trimesh mesh.
+    "jaxps.report": ["to_trimesh"],
 }
 # Changed on purpose since the snapshot (issue 17; the snapshot entries were rewritten):
 # `load_capture(equalize=False)` and `reconstruct(equalize=False)` became

@@ -17,12 +17,12 @@ from ..acquisition import check_frames, drop_flagged, load_capture
 from ..core import Status, status_counts
 from ..integration import integrate
 from ..ps import PSResult, photometric_stereo
+from ..report._mesh import write_meshes
 from ..report._writers import (
     write_albedo,
     write_csv,
     write_json,
     write_normal_map,
-    write_ply,
     write_preview,
 )
 
@@ -105,7 +105,7 @@ def reconstruct(
             scale = write_albedo(os.path.join(out, "albedo.png"), albedo)
             np.save(os.path.join(out, "height.npy"), height)
             np.save(os.path.join(out, "status.npy"), np.asarray(res.status))
-            faces = write_ply(os.path.join(out, "mesh.ply"), height, ok)
+            faces = write_meshes(out, height, ok, albedo, normals)["faces"]
             write_preview(os.path.join(out, "preview.png"), normals, albedo, height, ok,
                           title=f"{cap.names[0]} ... ({len(cap.names)} frames)")
             return scale, faces

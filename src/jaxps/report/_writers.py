@@ -1,6 +1,6 @@
 """Writing results: 16-bit normal maps, albedo, height, PLY meshes, a preview image.
 
-OpenCV is imported by the functions that use it.
+OpenCV and trimesh are imported by the functions that use them.
 """
 
 from __future__ import annotations
@@ -59,34 +59,14 @@ def write_ply(path, height: np.ndarray, mask: np.ndarray, *, pixel_size: float =
     """Write the masked height map as a binary PLY triangle mesh; returns the face count.
 
     Vertices are (x, y, z) in the camera frame (x right, y up, pixel units times
-    `pixel_size`); each 2x2 block of valid pixels gives two triangles, wound toward the viewer.
+    `pixel_size`); each 2x2 block of valid pixels gives two triangles, wound toward the viewer
+    (`to_trimesh`; written by trimesh). `write_meshes` adds colours, texture and normals.
     """
-    h, w = height.shape
-    mask = np.asarray(mask, bool) & np.isfinite(height)
-    index = np.full((h, w), -1, np.int64)
-    index[mask] = np.arange(mask.sum())
-    rows, cols = np.nonzero(mask)
-    verts = np.stack([cols * pixel_size, (h - 1 - rows) * pixel_size, height[mask]], axis=1)
+    from ._mesh import to_trimesh
 
-    a, b = index[:-1, :-1], index[:-1, 1:]  # top-left, top-right
-    c, d = index[1:, :-1], index[1:, 1:]  # bottom-left, bottom-right
-    quads = (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)
-    faces = np.concatenate([np.stack([a[quads], c[quads], b[quads]], 1),
-                            np.stack([b[quads], c[quads], d[quads]], 1)])
-    vertex = np.empty(len(verts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
-    vertex["x"], vertex["y"], vertex["z"] = verts.T
-    face = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
-    face["n"], face["v"] = 3, faces
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {len(vertex)}\nproperty float x\nproperty float y\nproperty float z\n"
-        f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(vertex.tobytes())
-        f.write(face.tobytes())
-    return len(face)
+    mesh = to_trimesh(height, mask, pixel_size=pixel_size)
+    mesh.export(os.fspath(path), file_type="ply", encoding="binary")
+    return len(mesh.faces)
 
 
 def _plain(value):
