@@ -1,5 +1,8 @@
 """Batched photometric stereo: N captures in one call equal N single calls; bad batches fail."""
 
+import csv
+import json
+
 import numpy as np
 import pytest
 
@@ -94,6 +97,14 @@ def test_cli_many_folders(tmp_path, capsys):
     assert "no frame files" in lines["c"]
     assert (tmp_path / "out" / "a" / "normals.png").is_file()
     assert not (tmp_path / "out" / "c").exists()
+    # the printed table is also OUT/summary.csv, one line per capture, same columns as JSON
+    with open(tmp_path / "out" / "summary.csv", newline="") as f:
+        table = list(csv.DictReader(f))
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())["captures"]
+    assert [r["capture"] for r in table] == ["a", "b", "c"]
+    assert list(table[0]) == list(summary[0])
+    assert "no frame files" in table[2]["error"] and table[0]["error"] == ""
+    assert float(table[0]["ok_%"]) == pytest.approx(summary[0]["ok_%"])
 
 
 def test_batch_sharded_over_two_host_devices():

@@ -249,9 +249,11 @@ def test_fixed_key_reproducible(scene, fitted):
     a = fitted["mlp"]  # key 0
     b = jaxps.fit_brdf(*args, key=jax.random.key(0), **kw)
     c = jaxps.fit_brdf(*args, key=jax.random.key(4), **kw)
-    flat = [jax.flatten_util.ravel_pytree(m.params)[0] for m in (a, b, c)]
+    d = jaxps.fit_brdf(*args, key=4, **kw)  # an int seed means jax.random.key(seed)
+    flat = [jax.flatten_util.ravel_pytree(m.params)[0] for m in (a, b, c, d)]
     np.testing.assert_array_equal(np.asarray(flat[0]), np.asarray(flat[1]))
     assert not np.array_equal(np.asarray(flat[0]), np.asarray(flat[2]))
+    np.testing.assert_array_equal(np.asarray(flat[2]), np.asarray(flat[3]))
 
 
 def test_delaunay_interpolates_and_falls_back_to_lambert(scene):

@@ -47,7 +47,8 @@ def test_demo_reports_small_errors(tmp_path, capsys):
     # 16-bit frames, no noise: quantisation only.
     assert err["angular_median_deg"] < 0.05
     assert err["height_rms_px"] < 0.05 * err["height_range_px"]
-    for name in ("normals.png", "albedo.png", "height.npy", "mesh.ply", "preview.png"):
+    for name in ("normals.png", "albedo.png", "height.npy", "mesh.ply", "mesh.obj", "mesh.mtl",
+                 "texture.png", "points.ply", "preview.png"):
         assert (tmp_path / name).stat().st_size > 0
     assert "median angular error" in capsys.readouterr().out
 

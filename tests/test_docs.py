@@ -1,6 +1,7 @@
 """The documentation site builds with `mkdocs build --strict` (skipped without the docs extra)."""
 
 import os
+import re
 import subprocess
 import sys
 
@@ -22,6 +23,17 @@ def test_docs_build_strict(tmp_path):
         assert (tmp_path / "site" / page).is_file(), page
     # The tutorial pulls its code from the example that CI runs.
     assert "load_capture" in (tmp_path / "site" / "tutorial" / "index.html").read_text()
+
+    # Offline: formulas are MathML made at build time, and no page loads a remote script,
+    # stylesheet or font.
+    pages = {p: p.read_text() for p in (tmp_path / "site").rglob("*.html")}
+    for path, text in pages.items():
+        remote = re.findall(r'<(?:script|link)[^>]*(?:src|href)="(?:https?:)?//[^"]*"[^>]*>', text)
+        assert not [r for r in remote if "<script" in r or "stylesheet" in r], (path, remote)
+        assert not re.search(r'class="arithmatex">\s*\\[(\[]', text), f"raw TeX in {path}"
+    ps = pages[tmp_path / "site" / "photometric_stereo" / "index.html"]
+    assert ps.count('<span class="arithmatex"><math') >= 5
+    assert not (tmp_path / "site" / "hooks").exists()
 
 
 def test_every_subpackage_has_an_api_page_in_the_nav():

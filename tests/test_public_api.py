@@ -27,12 +27,16 @@ ADDED = {
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
                           "check_file", "check_frames", "drop_flagged", "estimate_shifts",
                           "load_psm", "register_frames", "shift_frames"],
+    # Issue 15: a reconstruction as a textured trimesh mesh.
+    "jaxps.report": ["to_trimesh"],
 }
 # Changed on purpose since the snapshot (issue 17; the snapshot entries were rewritten):
 # `load_capture(equalize=False)` and `reconstruct(equalize=False)` became
 # `intensities="frontal"` (per-frame intensities estimated and divided out by default), and
 # `Capture` gained `intensities` and `intensity_method`. Issue 18: `PS_METHODS` gained `"l1"`
-# (exact L1 photometric stereo).
+# (exact L1 photometric stereo). Issue 15: every `key` parameter (fit_brdf,
+# brdf_photometric_stereo, render_scene, render_corrupted, perturb_lights, sweep) is annotated
+# `jax.Array | int` (an int seed is accepted); those snapshot entries were rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -172,3 +172,30 @@ def test_preview_panels_show_normals_albedo_and_shading(tmp_path):
     assert tuple(row[cy, pw + 8 + cx]) == (255, 255, 255)
     shade = row[cy - 20:cy + 20, 2 * (pw + 8) + cx - 20:2 * (pw + 8) + cx + 20]
     assert shade.min() == shade.max()  # a plane has one shade (interior, away from the edges)
+
+
+def test_write_json_has_no_negative_zero(tmp_path):
+    from jaxps.report._writers import write_json
+
+    data = {"lights": np.array([[-0.0, 0.5, 1.0]], np.float32), "x": -0.0,
+            "nested": [{"y": np.float64(-0.0), "t": (np.float32(-0.0), 2)}], "n": np.int64(3)}
+    write_json(tmp_path / "s.json", data)
+    text = (tmp_path / "s.json").read_text()
+    assert "-0.0" not in text and "-0" not in text
+    back = json.loads(text)
+    assert back["lights"] == [[0.0, 0.5, 1.0]] and back["n"] == 3
+    assert back["nested"] == [{"y": 0.0, "t": [0.0, 2]}]
+    assert np.copysign(1.0, back["x"]) == 1.0
+
+
+def test_progress_bar_names_the_running_stage():
+    from jaxps.cli._reconstruct import _Stages
+
+    stages = _Stages(["a", "b", "c"])
+    seen = []
+    for name in ("load frames", "integrate", "write outputs"):
+        stages.run(name, lambda: seen.append((stages.bar.desc, stages.bar.n)))
+    stages.close()
+    # while a stage runs, the bar names it with its place; `n` counts the finished ones
+    assert seen == [("load frames (1/3)", 0), ("integrate (2/3)", 1), ("write outputs (3/3)", 2)]
+    assert list(stages.times) == ["load frames", "integrate", "write outputs"]

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .core._random import as_key
 from .core._status import Status
 from .evaluate import angular_stats
 from .lights import near_light_field, surface_points
@@ -68,8 +69,12 @@ def ring_lights(k: int, zenith_deg: float = 35.0, *, centre: bool = True) -> Flo
 
 
 def perturb_lights(lights: Float[ArrayLike, "K 3"], angle_deg: float, *,
-                   key: jax.Array) -> Float[np.ndarray, "K 3"]:
-    """Rotate each light by exactly `angle_deg` about a random axis perpendicular to it."""
+                   key: jax.Array | int) -> Float[np.ndarray, "K 3"]:
+    """Rotate each light by exactly `angle_deg` about a random axis perpendicular to it.
+
+    `key` is a JAX PRNG key or an int seed (`jax.random.key(seed)`).
+    """
+    key = as_key(key)
     lights = np.asarray(lights, np.float64)
     lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
     r = np.asarray(jax.random.normal(key, lights.shape), np.float64)
@@ -129,7 +134,7 @@ def render_corrupted(
     shininess: float = 40.0,
     falloff: Float[ArrayLike, "K H W"] | None = None,
     noise: float = 0.0,
-    key: jax.Array | None = None,
+    key: jax.Array | int | None = None,
 ) -> Corrupted:
     """Render a surface with cast shadows, a specular lobe, noise and clipping at 1.
 
@@ -147,6 +152,7 @@ def render_corrupted(
     - `specular`, `shininess`: Blinn-Phong strength $k_s$ and exponent $s$.
     - `falloff`: `(K, H, W)` per-sample light intensity (near lights), default 1.
     - `noise`: Gaussian noise standard deviation (needs `key`).
+    - `key`: a JAX PRNG key or an int seed (`jax.random.key(seed)`).
 
     **Returns:** `Corrupted`.
     """
@@ -184,8 +190,8 @@ def render_corrupted(
         images = images * jnp.asarray(falloff, jnp.float32)
     if noise > 0:
         if key is None:
-            raise ValueError("noise > 0 needs key=jax.random.key(...)")
-        images = images + noise * jax.random.normal(key, images.shape, images.dtype)
+            raise ValueError("noise > 0 needs key (a jax.random.key or an int seed)")
+        images = images + noise * jax.random.normal(as_key(key), images.shape, images.dtype)
     images = jnp.where(mask[None], jnp.clip(images, 0, 1), 0)
     return Corrupted(images, lights, n, albedo, mask, shadow, jnp.where(mask[None], spec, 0))
 
@@ -260,7 +266,7 @@ def sweep(
     *,
     methods: tuple[str, ...] | None = None,
     h: int = 96,
-    key: jax.Array | None = None,
+    key: jax.Array | int | None = None,
 ) -> dict:
     """Angular error of each method as one corruption grows (see `SWEEPS`).
 
@@ -270,7 +276,8 @@ def sweep(
       robust solvers; the reflectance-aware and semi-calibrated solvers answer other questions
       and are far slower).
     - `h`: image height of the `face_like` scene.
-    - `key`: PRNG key for noise and light perturbations (default `jax.random.key(0)`).
+    - `key`: PRNG key or int seed for noise and light perturbations (default
+      `jax.random.key(0)`).
 
     **Returns:** a JSON-ready dict: `name`, `values`, per-value scene facts (`shadowed`,
     `saturated`, `specular` fractions of object samples) and, per method, lists of
@@ -281,7 +288,7 @@ def sweep(
         raise ValueError(f"name must be one of {tuple(SWEEPS)}, got {name!r}")
     values = SWEEPS[name] if values is None else tuple(values)
     methods = ROBUST_SWEEP_METHODS if methods is None else tuple(methods)
-    key = jax.random.key(0) if key is None else key
+    key = as_key(key, default=0)
     names = list(methods) + (["near-l2"] if name == "near_distance_mm" else [])
     out = {"name": name, "values": list(values), "h": h, "scene": [],
            "methods": {m: {f: [] for f in ("median_deg", "mean_deg", "p95_deg", "ok_fraction",

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .core._random import as_key
 from .lights import lights_from_angles
 from .shading import render_lambertian
 
@@ -122,12 +123,13 @@ def render_scene(
     *,
     albedo=None,
     noise: float = 0.0,
-    key: jax.Array | None = None,
+    key: jax.Array | int | None = None,
 ) -> Scene:
     """Render `surface` under `(K, 3)` lights with Lambert's law and optional Gaussian noise.
 
     `albedo` defaults to a smooth pattern in [0.45, 0.85]; outside the mask images are 0.
-    Noise has standard deviation `noise` (in [0, 1] intensity units) and needs `key`.
+    Noise has standard deviation `noise` (in [0, 1] intensity units) and needs `key`, a JAX
+    PRNG key or an int seed (`jax.random.key(seed)`).
     """
     h, w = surface.mask.shape
     if albedo is None:
@@ -138,7 +140,7 @@ def render_scene(
     images = render_lambertian(surface.normals, albedo, lights)
     if noise > 0:
         if key is None:
-            raise ValueError("noise > 0 needs key=jax.random.key(...)")
-        images = images + noise * jax.random.normal(key, images.shape, images.dtype)
+            raise ValueError("noise > 0 needs key (a jax.random.key or an int seed)")
+        images = images + noise * jax.random.normal(as_key(key), images.shape, images.dtype)
     images = jnp.where(surface.mask, jnp.clip(images, 0, 1), 0)
     return Scene(images, lights, surface.normals, albedo, surface.height, surface.mask)

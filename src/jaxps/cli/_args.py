@@ -26,10 +26,12 @@ def add_light_args(p) -> None:
 def reconstruct_parser(sub) -> None:
     p = sub.add_parser(
         "reconstruct",
-        help="frames -> normals, albedo, height, mesh and a JSON summary",
+        help="frames -> normals, albedo, height, textured meshes and a JSON summary",
         description="Reconstruct normals, albedo and a height map from a photometric-stereo "
         "frame stack, and write normals.png (16-bit, n = v/65535*2-1), albedo.png, height.npy, "
-        "mesh.ply, preview.png and summary.json to --out.",
+        "mesh.obj (with mesh.mtl and the albedo as texture.png), mesh.ply (vertex colours), "
+        "points.ply (point cloud with normals), preview.png and summary.json to --out. "
+        "Several capture folders: per-capture maps, summary.json and summary.csv.",
     )
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
                    "several folders are several captures (one progress bar, a summary table)")

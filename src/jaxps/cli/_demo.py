@@ -66,6 +66,6 @@ def run(args) -> int:
     print(f"height: RMS error {errors['height_rms_px']:.2f} px over a "
           f"{truth_range:.1f} px relief (Frankot-Chellappa)")
     print("timings: " + ", ".join(f"{k} {v:.3f} s" for k, v in summary["timings_s"].items()))
-    print(f"outputs: {args.out}/normals.png albedo.png height.npy mesh.ply preview.png "
-          "summary.json")
+    print(f"outputs: {args.out}/normals.png albedo.png height.npy mesh.obj mesh.ply points.ply "
+          "preview.png summary.json")
     return 0

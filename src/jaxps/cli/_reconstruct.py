@@ -17,7 +17,14 @@ from ..acquisition import check_frames, drop_flagged, load_capture
 from ..core import Status, status_counts
 from ..integration import integrate
 from ..ps import PSResult, photometric_stereo
-from ..report._writers import write_albedo, write_json, write_normal_map, write_ply, write_preview
+from ..report._mesh import write_meshes
+from ..report._writers import (
+    write_albedo,
+    write_csv,
+    write_json,
+    write_normal_map,
+    write_preview,
+)
 
 __all__ = ["reconstruct", "reconstruct_many", "run", "summary_table"]
 
@@ -28,12 +35,14 @@ class _Stages:
     def __init__(self, names: list[str]):
         from tqdm import tqdm
 
+        # The description names the stage now running and its place ("integrate (3/4)"); the
+        # bar fills with the stages finished.
         self.bar = tqdm(total=len(names), unit="stage", file=sys.stderr, leave=False,
-                        bar_format="{desc:<28}{bar:20}| {n_fmt}/{total_fmt} [{elapsed}]")
+                        bar_format="{desc:<32}{bar:20}| [{elapsed}]")
         self.times: dict[str, float] = {}
 
     def run(self, name: str, fn, *args, **kwargs):
-        self.bar.set_description(name)
+        self.bar.set_description_str(f"{name} ({self.bar.n + 1}/{self.bar.total})")
         t0 = time.perf_counter()
         out = fn(*args, **kwargs)
         self.times[name] = round(time.perf_counter() - t0, 4)
@@ -96,7 +105,7 @@ def reconstruct(
             scale = write_albedo(os.path.join(out, "albedo.png"), albedo)
             np.save(os.path.join(out, "height.npy"), height)
             np.save(os.path.join(out, "status.npy"), np.asarray(res.status))
-            faces = write_ply(os.path.join(out, "mesh.ply"), height, ok)
+            faces = write_meshes(out, height, ok, albedo, normals)["faces"]
             write_preview(os.path.join(out, "preview.png"), normals, albedo, height, ok,
                           title=f"{cap.names[0]} ... ({len(cap.names)} frames)")
             return scale, faces
@@ -229,7 +238,8 @@ def reconstruct_many(
 def _run_many(args) -> int:
     """`jaxps reconstruct DIR1 DIR2 ... --out OUT`: every folder is one capture; writes
     `OUT/<folder>/normals.png`, `albedo.png`, `status.npy`, prints a summary table and writes
-    `OUT/summary.json`. Returns 1 if any capture failed (named in the table), else 0."""
+    `OUT/summary.json` and `OUT/summary.csv` (the table). Returns 1 if any capture failed
+    (named in the table), else 0."""
     load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
                         mask=args.mask, crop_face=args.crop_face,
                         intensities=args.intensities)
@@ -245,5 +255,6 @@ def _run_many(args) -> int:
         write_albedo(os.path.join(sub, "albedo.png"), np.asarray(res.albedo))
         np.save(os.path.join(sub, "status.npy"), np.asarray(res.status))
     write_json(os.path.join(args.out, "summary.json"), {"captures": rows})
+    write_csv(os.path.join(args.out, "summary.csv"), rows)
     print(summary_table(rows))
     return 1 if any(r["error"] for r in rows) else 0

@@ -79,6 +79,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
+from ..core._random import as_key
 from ..lights._directions import MAX_LIGHT_CONDITION
 from ..ps import photometric_stereo
 from ._features import (
@@ -369,7 +370,7 @@ def fit_brdf(
     *,
     mask: Bool[ArrayLike, "H W"] | None = None,
     method: str = "mlp",
-    key: jax.Array | None = None,
+    key: jax.Array | int | None = None,
     n_samples: int = 100_000,
     hidden: tuple[int, ...] = (10, 10),
     bound: float = 0.5,
@@ -395,7 +396,8 @@ def fit_brdf(
     - `method`: `"mlp"` (network on intensity, the default as in DESIGN.md), `"mlp_ratio"`
       (network on $I/\\rho$; same held-out error on Yale B, see docs/brdf.md),
       `"delaunay"` or `"lambertian"` (see the module docstring).
-    - `key`: PRNG key for sampling and initialisation (default `jax.random.key(0)`).
+    - `key`: PRNG key or int seed (`jax.random.key(seed)`) for sampling and initialisation
+      (default `jax.random.key(0)`).
     - `n_samples`: random pixel-light samples to train on (paper: ~100,000). Samples that are
       non-finite or at/above `saturation` are never drawn.
     - `hidden`: hidden-layer widths of the MLP (paper: two layers, 5-10-10-1 in total).
@@ -448,7 +450,7 @@ def fit_brdf(
             "fold Lambert's law fits each fold exactly, its correction is zero and the test "
             "says nothing")
     dtype = images.dtype
-    key = jax.random.key(0) if key is None else key
+    key = as_key(key, default=0)
     k, h, w = images.shape
 
     feats = _features(normals, lights)  # (K, H, W, 5)

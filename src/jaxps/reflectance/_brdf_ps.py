@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._batched_lm import BatchedLM, map_pixels, solve_pixels
+from ..core._random import as_key
 from ..core._status import Status
 from ..ps import PSResult, photometric_stereo
 from ._brdf import BRDF_METHODS, _predict_one, fit_brdf
@@ -75,7 +76,7 @@ def brdf_photometric_stereo(
     mask: Bool[ArrayLike, "H W"] | None = None,
     method: str = "mlp_ratio",
     iterations: int = 2,
-    key: jax.Array | None = None,
+    key: jax.Array | int | None = None,
     max_steps: int = 20,
     **fit_options,
 ) -> PSResult:
@@ -91,7 +92,8 @@ def brdf_photometric_stereo(
     - `mask`: `(H, W)` bool pixels to solve (default all).
     - `method`: a `jaxps.BRDF_METHODS` name other than `"delaunay"` (not differentiable).
     - `iterations`: BRDF fit + per-pixel re-solve rounds (0 returns L2 photometric stereo).
-    - `key`, `**fit_options`: passed to `fit_brdf`. `max_steps`: per-pixel LM step limit.
+    - `key` (a JAX PRNG key or an int seed), `**fit_options`: passed to `fit_brdf`.
+    - `max_steps`: per-pixel LM step limit.
 
     **Returns:** a `PSResult`; `status` is `NOT_CONVERGED` where a pixel's last solve hit its
     step limit, and `info` holds `{"models": [...], "iterations": iterations}`.
@@ -100,6 +102,7 @@ def brdf_photometric_stereo(
         raise ValueError(f"method must be one of {BRDF_METHODS} except 'delaunay', got {method!r}")
     if iterations < 0:
         raise ValueError(f"iterations must be >= 0, got {iterations}")
+    key = as_key(key)
     images = jnp.asarray(images)
     res = photometric_stereo(images, lights, mask=mask)
     h, w = images.shape[1:]

@@ -1,11 +1,13 @@
 """Outputs that people open: maps, meshes, summaries and the HTML report of a run.
 
 Takes a reconstruction (or a run folder written by `jaxps reconstruct`) and, optionally, ground
-truth; gives 16-bit normal maps, albedo PNGs, PLY meshes, JSON summaries, a preview figure and
-`report.html` with error maps.
+truth; gives 16-bit normal maps, albedo PNGs, meshes (textured OBJ, coloured PLY, a point
+cloud with normals; `to_trimesh` gives a `trimesh.Trimesh`), JSON summaries, a preview figure
+and `report.html` with error maps.
 """
 
 from ._figures import lambertian_check_plot
 from ._html import write_report
+from ._mesh import to_trimesh
 
-__all__ = ["lambertian_check_plot", "write_report"]
+__all__ = ["lambertian_check_plot", "to_trimesh", "write_report"]

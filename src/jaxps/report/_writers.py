@@ -1,17 +1,18 @@
 """Writing results: 16-bit normal maps, albedo, height, PLY meshes, a preview image.
 
-OpenCV is imported by the functions that use it.
+OpenCV and trimesh are imported by the functions that use them.
 """
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 
 import numpy as np
 
-__all__ = ["read_normal_map", "write_albedo", "write_json", "write_normal_map", "write_ply",
-           "write_preview"]
+__all__ = ["read_normal_map", "write_albedo", "write_csv", "write_json", "write_normal_map",
+           "write_ply", "write_preview"]
 
 
 def write_normal_map(path, normals: np.ndarray) -> None:
@@ -58,40 +59,47 @@ def write_ply(path, height: np.ndarray, mask: np.ndarray, *, pixel_size: float =
     """Write the masked height map as a binary PLY triangle mesh; returns the face count.
 
     Vertices are (x, y, z) in the camera frame (x right, y up, pixel units times
-    `pixel_size`); each 2x2 block of valid pixels gives two triangles, wound toward the viewer.
+    `pixel_size`); each 2x2 block of valid pixels gives two triangles, wound toward the viewer
+    (`to_trimesh`; written by trimesh). `write_meshes` adds colours, texture and normals.
     """
-    h, w = height.shape
-    mask = np.asarray(mask, bool) & np.isfinite(height)
-    index = np.full((h, w), -1, np.int64)
-    index[mask] = np.arange(mask.sum())
-    rows, cols = np.nonzero(mask)
-    verts = np.stack([cols * pixel_size, (h - 1 - rows) * pixel_size, height[mask]], axis=1)
+    from ._mesh import to_trimesh
 
-    a, b = index[:-1, :-1], index[:-1, 1:]  # top-left, top-right
-    c, d = index[1:, :-1], index[1:, 1:]  # bottom-left, bottom-right
-    quads = (a >= 0) & (b >= 0) & (c >= 0) & (d >= 0)
-    faces = np.concatenate([np.stack([a[quads], c[quads], b[quads]], 1),
-                            np.stack([b[quads], c[quads], d[quads]], 1)])
-    vertex = np.empty(len(verts), dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4")])
-    vertex["x"], vertex["y"], vertex["z"] = verts.T
-    face = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
-    face["n"], face["v"] = 3, faces
-    header = (
-        "ply\nformat binary_little_endian 1.0\n"
-        f"element vertex {len(vertex)}\nproperty float x\nproperty float y\nproperty float z\n"
-        f"element face {len(face)}\nproperty list uchar int vertex_indices\nend_header\n"
-    )
-    with open(path, "wb") as f:
-        f.write(header.encode("ascii"))
-        f.write(vertex.tobytes())
-        f.write(face.tobytes())
-    return len(face)
+    mesh = to_trimesh(height, mask, pixel_size=pixel_size)
+    mesh.export(os.fspath(path), file_type="ply", encoding="binary")
+    return len(mesh.faces)
+
+
+def _plain(value):
+    """`value` with NumPy scalars and arrays as Python numbers and lists, tuples as lists, and
+    every negative zero as 0.0 (recursively)."""
+    if isinstance(value, dict):
+        return {k: _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return _plain(value.tolist())
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and value == 0.0:
+        return 0.0  # -0.0 == 0.0: both become +0.0
+    return value
 
 
 def write_json(path, data: dict) -> None:
+    """`data` as indented JSON; NumPy values become plain numbers and lists, and `-0.0` (a
+    light direction's zero component, say) is written as `0.0`."""
     with open(path, "w") as f:
-        json.dump(data, f, indent=2)
+        json.dump(_plain(data), f, indent=2)
         f.write("\n")
+
+
+def write_csv(path, rows) -> None:
+    """Rows of dicts as CSV: a header from the keys of the first row, one line per row."""
+    rows = [_plain(r) for r in rows]
+    with open(path, "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else [])
+        writer.writeheader()
+        writer.writerows(rows)
 
 
 def write_preview(path, normals, albedo, height, mask, title: str = "", *,
