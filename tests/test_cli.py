@@ -138,7 +138,7 @@ def test_reconstruct_psm_cat_colour_with_mask(tmp_path, data):
 
 
 def test_mesh_is_valid_ply(tmp_path):
-    from jaxps.report._writers import write_ply
+    from jaxps.report._mesh import write_ply
 
     z = np.arange(12, dtype=np.float32).reshape(3, 4)
     mask = np.ones((3, 4), bool)

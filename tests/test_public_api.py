@@ -36,7 +36,8 @@ ADDED = {
 # `Capture` gained `intensities` and `intensity_method`. Issue 18: `PS_METHODS` gained `"l1"`
 # (exact L1 photometric stereo). Issue 15: every `key` parameter (fit_brdf,
 # brdf_photometric_stereo, render_scene, render_corrupted, perturb_lights, sweep) is annotated
-# `jax.Array | int` (an int seed is accepted); those snapshot entries were rewritten.
+# `jax.Array | int` (an int seed is accepted); those snapshot entries were rewritten; and
+# `jaxps.cli.reconstruct` gained `obj` and `points` (the OBJ and point cloud on request).
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -41,7 +41,8 @@ def run(args) -> int:
     # The rendered flashes are exactly equal: no intensity estimate (the default "frontal"
     # would add its own ~0.4 deg bias on this scene, whose mean normal is not the view axis).
     summary = reconstruct(paths, args.out, lights=os.path.join(frames_dir, "lights.txt"),
-                          ambient=amb_path, mask=mask_path, intensities="none")
+                          ambient=amb_path, mask=mask_path, intensities="none",
+                          obj=True, points=True)  # small frames: every mesh format
     normals = read_normal_map(os.path.join(args.out, "normals.png"))
     mask = read_mask(mask_path)
     err = np.asarray(angular_error(normals, scene.normals, mask=mask))[mask]

@@ -68,12 +68,15 @@ def reconstruct(
     integration: str = "fc",
     report: bool = False,
     check_quality: bool = False,
+    obj: bool = False,
+    points: bool = False,
 ) -> dict:
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
     `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
     `"dropped_frames"` in the summary). `intensities`: see `load_capture` (the summary's
-    `"intensities"` holds the method and the per-frame estimates, `"gains"` their inverses)."""
+    `"intensities"` holds the method and the per-frame estimates, `"gains"` their inverses).
+    `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`)."""
     import jax
 
     if len(frames) == 1 and os.path.isdir(frames[0]):
@@ -105,7 +108,8 @@ def reconstruct(
             scale = write_albedo(os.path.join(out, "albedo.png"), albedo)
             np.save(os.path.join(out, "height.npy"), height)
             np.save(os.path.join(out, "status.npy"), np.asarray(res.status))
-            faces = write_meshes(out, height, ok, albedo, normals)["faces"]
+            faces = write_meshes(out, height, ok, albedo, normals, obj=obj,
+                                 points=points)["faces"]
             write_preview(os.path.join(out, "preview.png"), normals, albedo, height, ok,
                           title=f"{cap.names[0]} ... ({len(cap.names)} frames)")
             return scale, faces
@@ -155,6 +159,7 @@ def run(args) -> int:
         intensities=args.intensities,
         shadow_threshold=args.shadow_threshold, method=args.method,
         integration=args.integration, report=args.report, check_quality=args.check_quality,
+        obj=args.obj, points=args.points,
     )
     if summary["dropped_frames"]:
         print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))

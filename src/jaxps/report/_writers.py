@@ -12,7 +12,7 @@ import os
 import numpy as np
 
 __all__ = ["read_normal_map", "write_albedo", "write_csv", "write_json", "write_normal_map",
-           "write_ply", "write_preview"]
+           "write_preview"]
 
 
 def write_normal_map(path, normals: np.ndarray) -> None:
@@ -53,20 +53,6 @@ def write_albedo(path, albedo: np.ndarray) -> float:
     if not cv2.imwrite(os.fspath(path), v):
         raise OSError(f"could not write {path}")
     return scale
-
-
-def write_ply(path, height: np.ndarray, mask: np.ndarray, *, pixel_size: float = 1.0) -> int:
-    """Write the masked height map as a binary PLY triangle mesh; returns the face count.
-
-    Vertices are (x, y, z) in the camera frame (x right, y up, pixel units times
-    `pixel_size`); each 2x2 block of valid pixels gives two triangles, wound toward the viewer
-    (`to_trimesh`; written by trimesh). `write_meshes` adds colours, texture and normals.
-    """
-    from ._mesh import to_trimesh
-
-    mesh = to_trimesh(height, mask, pixel_size=pixel_size)
-    mesh.export(os.fspath(path), file_type="ply", encoding="binary")
-    return len(mesh.faces)
 
 
 def _plain(value):
