@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import pathlib
 import subprocess
 import sys
 import time
@@ -247,61 +248,113 @@ def pareto(points: list[dict]) -> list[dict]:
     return front
 
 
-def _minor_label(v, _):
-    """Label the 2x and 5x minor ticks of a log axis, nothing else."""
-    if v <= 0:
-        return ""
-    mantissa = round(v / 10 ** np.floor(np.log10(v)), 6)
-    return f"{v:g}" if mantissa in (2.0, 5.0) else ""
+# Tasks, in the order the figures are drawn: (file suffix, title, test on the panel name).
+TASKS = (
+    ("ps", "photometric stereo", lambda panel: panel.startswith("PS")),
+    ("robust", "robust photometric stereo", lambda panel: panel.startswith("robust")),
+    ("integration", "integration", lambda panel: panel.startswith("integration")),
+    ("relight", "relighting", lambda panel: panel.startswith("relight")),
+    ("icp", "alignment to a scan (ICP)", lambda panel: panel.startswith("ICP")),
+)
 
 
-def draw(points: list[dict], path) -> None:
-    import matplotlib
+def task_of(panel: str) -> str:
+    """The suffix of the task figure a panel belongs to (`"other"` if none matches)."""
+    return next((key for key, _, test in TASKS if test(panel)), "other")
 
-    matplotlib.use("Agg")
+
+def _tick(v, _):
+    """Log-axis labels: 0.1, 1, 10, 100, 1000, then 1e4, 1e5 (no '1e+06')."""
+    return f"{v:g}" if v < 1e4 else f"1e{round(np.log10(v))}"
+
+
+def _panel(ax, pts, styles):
+    """One panel: run time against error, a marker per method (its legend entry), baselines
+    hollow, the Pareto front a grey step line through black-edged points."""
+    import matplotlib.ticker as mticker
+
+    front = pareto(pts)
+    ax.step([p["run_s"] * 1e3 for p in front], [p["error"] for p in front], where="post",
+            color="0.55", lw=1.2, zorder=1)
+    for p in pts:
+        colour, marker = styles[p["method"]]
+        on = p in front
+        ax.scatter(p["run_s"] * 1e3, p["error"], s=70 if on else 45, marker=marker, zorder=3,
+                   facecolors="white" if p["baseline"] else colour,
+                   edgecolors="black" if on else colour, linewidths=1.6 if on else 1.0)
+    ax.set_xscale("log")
+    ax.xaxis.set_major_locator(mticker.LogLocator(base=10, numticks=6))
+    ax.xaxis.set_major_formatter(mticker.FuncFormatter(_tick))
+    ax.xaxis.set_minor_formatter(mticker.NullFormatter())
+    ax.margins(x=0.15, y=0.1)
+    errs = [p["error"] for p in pts if p["error"] > 0]
+    if errs and max(errs) / min(errs) > 30:
+        ax.set_yscale("log")
+        ax.yaxis.set_major_formatter(mticker.FuncFormatter(_tick))
+        ax.yaxis.set_minor_formatter(mticker.NullFormatter())
+    else:
+        ax.set_ylim(0, 1.12 * max([p["error"] for p in pts] + [1e-9]))
+    ax.set_xlabel("run time per call (ms, after compile)", fontsize=8)
+    ax.set_ylabel(pts[0]["error_name"], fontsize=8)
+    ax.tick_params(labelsize=8)
+    ax.grid(alpha=0.25, which="major")
+
+
+def _figure(points, title, path):
+    import matplotlib.lines as mlines
     import matplotlib.pyplot as plt
 
     panels = list(dict.fromkeys(p["panel"] for p in points))
-    if not panels:
-        return
+    methods = list(dict.fromkeys(p["method"] for p in points))
+    markers = "osD^vP*XhH<>p8d"
+    styles = {m: (f"C{i % 10}", markers[i % len(markers)]) for i, m in enumerate(methods)}
     cols = min(3, len(panels))
     rows = -(-len(panels) // cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(5.2 * cols, 4.2 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, cols, figsize=(4.6 * cols + 2.6, 3.6 * rows + 0.6),
+                             squeeze=False, constrained_layout=True)
     for ax, panel in zip(axes.flat, panels):
-        pts = [p for p in points if p["panel"] == panel]
-        front = pareto(pts)
-        fx = [p["run_s"] * 1e3 for p in front]
-        fy = [p["error"] for p in front]
-        ax.step(fx, fy, where="post", color="0.6", lw=1, zorder=1, label="Pareto front")
-        for p in pts:
-            on = p in front
-            ax.scatter(p["run_s"] * 1e3, p["error"], s=60 if on else 36, zorder=2,
-                       marker="s" if p["baseline"] else "o",
-                       facecolors="none" if p["baseline"] else ("C3" if on else "C0"),
-                       edgecolors="C3" if on else "C0")
-            ax.annotate(p["method"], (p["run_s"] * 1e3, p["error"]), fontsize=7,
-                        xytext=(4, 3), textcoords="offset points")
-        ax.set_xscale("log")
-        ax.xaxis.set_major_formatter(matplotlib.ticker.FuncFormatter(lambda v, _: f"{v:g}"))
-        ax.xaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(_minor_label))
-        ax.margins(x=0.3)
-        errs = [p["error"] for p in pts if p["error"] > 0]
-        if errs and max(errs) / min(errs) > 30:
-            ax.set_yscale("log")
-        else:
-            ax.ticklabel_format(axis="y", useOffset=False, style="plain")
-            ax.set_ylim(0, 1.15 * max([p["error"] for p in pts] + [1e-9]))
-        ax.set_xlabel("run time (ms, after compile)")
-        ax.set_ylabel(pts[0]["error_name"])
+        _panel(ax, [p for p in points if p["panel"] == panel], styles)
         ax.set_title(panel, fontsize=9)
-        ax.legend(fontsize=7, loc="best")
     for ax in list(axes.flat)[len(panels):]:
         ax.set_axis_off()
-    fig.suptitle("jaxps: speed against accuracy (squares: numpy/scipy baselines; red: Pareto)",
-                 fontsize=10)
-    fig.tight_layout()
+    baseline = {p["method"] for p in points if p["baseline"]}
+    handles = [mlines.Line2D([], [], ls="none", marker=styles[m][1], markersize=7,
+                             markerfacecolor="white" if m in baseline else styles[m][0],
+                             markeredgecolor=styles[m][0],
+                             label=m if m not in baseline or "baseline" in m else f"{m} (baseline)")
+               for m in methods]
+    handles.append(mlines.Line2D([], [], color="0.55", lw=1.2, marker="o", markersize=7,
+                                 markerfacecolor="white", markeredgecolor="black",
+                                 label="Pareto front (black edge)"))
+    fig.legend(handles=handles, loc="outside right upper", fontsize=8, frameon=False)
+    fig.suptitle(f"jaxps, {title}: speed against accuracy (lower left is better; hollow: "
+                 "numpy/scipy baselines)", fontsize=10)
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def draw(points: list[dict], path) -> list:
+    """Write one figure per task (`summary_<task>.png` beside `path`) and an overview at `path`
+    (the first panel of each task). **Returns:** the paths written."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    path = pathlib.Path(path)
+    written = []
+    firsts = []
+    for key, title, _ in TASKS + (("other", "other", None),):
+        pts = [p for p in points if task_of(p["panel"]) == key]
+        if not pts:
+            continue
+        out = path.with_name(f"{path.stem}_{key}.png")
+        _figure(pts, title, out)
+        written.append(out)
+        first = pts[0]["panel"]
+        firsts += [p for p in pts if p["panel"] == first]
+    if firsts:
+        _figure(firsts, "one panel per task (all panels: summary_<task>.png)", path)
+        written.insert(0, path)
+    return written
 
 
 # ----------------------------------------------------------------------------- main
@@ -324,8 +377,8 @@ def main(argv=None) -> dict:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     if args.chart_only:
         payload = json.loads((RESULTS / "summary.json").read_text())
-        draw(payload["points"], RESULTS / "summary.png")
-        print(f"redrew {RESULTS / 'summary.png'} from {RESULTS / 'summary.json'}")
+        for out in draw(payload["points"], RESULTS / "summary.png"):
+            print(f"redrew {out} from {RESULTS / 'summary.json'}")
         return payload
 
     topics = [] if args.no_modules else (args.only if args.only is not None else discover())

@@ -40,7 +40,12 @@ def test_points_from_results_reads_the_contract_and_skips_bad_rows():
     assert runner.points_from_results("topic", {"no": "points"}) == []
 
 
-def test_draw_writes_a_chart(tmp_path):
-    pts = [_p("a", 1e-3, 1.0), _p("b", 2e-3, 0.5), _p("c", 1e-3, 3.0, panel="other")]
-    runner.draw(pts, tmp_path / "chart.png")
-    assert (tmp_path / "chart.png").stat().st_size > 5000
+def test_draw_writes_an_overview_and_one_chart_per_task(tmp_path):
+    pts = [_p("a", 1e-3, 1.0, panel="PS, scene"), _p("b", 2e-3, 0.5, panel="PS, scene"),
+           _p("c", 1e-3, 3.0, panel="integration, bear"), _p("d", 1e-2, 2.0, panel="mystery")]
+    written = runner.draw(pts, tmp_path / "chart.png")
+    assert [p.name for p in written] == ["chart.png", "chart_ps.png", "chart_integration.png",
+                                         "chart_other.png"]
+    assert all(p.stat().st_size > 5000 for p in written)
+    assert runner.task_of("robust PS 1280x1024") == "robust"
+    assert runner.task_of("relight yaleB01 cross <=30 deg") == "relight"
