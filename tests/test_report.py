@@ -75,6 +75,7 @@ def test_reconstruct_report_page_has_every_section(synthetic_run):
     _assert_images_resolve(page, parsed.srcs)
     assert {"Reconstruction", "Lambertian check", "Timings (s)"} <= set(parsed.h2)
     assert (out / "lambertian_check.png").is_file()
+    assert any(src.endswith("mesh_view.png") for src in parsed.srcs)  # the textured mesh
     text = page.read_text()
     assert "photometric stereo" in text  # a timing row from summary.json
 

@@ -60,6 +60,48 @@ def _shade(height: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return np.where(mask, shade, 1.0)
 
 
+def _mesh_view(height: np.ndarray, mask: np.ndarray, albedo: np.ndarray, path,
+               *, cells: int = 90) -> None:
+    """The textured mesh seen from above and to the left: one quad per cell of a grid of at
+    most `cells` x `cells` over the mask, coloured by the albedo (the texture of `mesh.obj`)
+    times Lambert shading from the upper left, drawn with matplotlib's 3-D polygons."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    h, w = height.shape
+    step = max(1, -(-max(h, w) // cells))
+    z = np.where(mask, height, np.nan)[::step, ::step]
+    ok = mask[::step, ::step] & np.isfinite(z)
+    alb = np.asarray(albedo, np.float64)
+    alb = (alb if alb.ndim == 3 else np.repeat(alb[..., None], 3, axis=-1))[::step, ::step]
+    top = np.percentile(alb[ok], 99.5) if ok.any() else 1.0
+    alb = np.clip(alb / (top or 1.0), 0, 1)
+    shade = _shade(np.nan_to_num(z), ok)
+    rows, cols = np.mgrid[:z.shape[0], :z.shape[1]]
+    x, y = cols * step, (h - 1 - rows * step)
+    quad = ok[:-1, :-1] & ok[1:, :-1] & ok[:-1, 1:] & ok[1:, 1:]
+    r, c = np.nonzero(quad)
+    corners = [(r, c), (r, c + 1), (r + 1, c + 1), (r + 1, c)]
+    # matplotlib's vertical axis is the image's y; the height points toward the viewer (-depth).
+    verts = np.stack([np.stack([x[i, j], -z[i, j], y[i, j]], -1) for i, j in corners], axis=1)
+    colours = np.clip(alb[r, c] * shade[r, c][:, None], 0, 1)
+    fig = plt.figure(figsize=(5, 5))
+    ax = fig.add_subplot(projection="3d")
+    ax.add_collection3d(Poly3DCollection(verts, facecolors=colours, edgecolors=colours,
+                                         linewidths=0.3, shade=False))
+    if len(verts):
+        lo, hi = verts.reshape(-1, 3).min(0), verts.reshape(-1, 3).max(0)
+        ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), zlim=(lo[2], hi[2]))
+        ax.set_box_aspect(np.maximum(hi - lo, 1e-9))
+    ax.view_init(elev=15, azim=-60)
+    ax.set_axis_off()
+    fig.savefig(path, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+
+
 def _status_figure(status: np.ndarray, path) -> None:
     import matplotlib
 

@@ -19,7 +19,7 @@ import pathlib
 import numpy as np
 
 from .. import evaluate
-from ._figures import _img, _save_rgb, _shade, _status_figure
+from ._figures import _img, _mesh_view, _save_rgb, _shade, _status_figure
 from ._writers import read_normal_map
 
 __all__ = ["write_report"]
@@ -129,6 +129,10 @@ def write_report(
     if status is not None:
         _status_figure(status, files / "status.png")
         pictures.append(_figure(rel(files / "status.png"), "per-pixel status"))
+    if height is not None and mask is not None and (run / "albedo.png").is_file():
+        _mesh_view(height, mask, _img(run / "albedo.png"), files / "mesh_view.png")
+        pictures.append(_figure(rel(files / "mesh_view.png"),
+                                "the textured mesh (albedo on the surface), seen obliquely"))
     parts.append("<h2>Reconstruction</h2><div class='grid'>" + "".join(pictures) + "</div>")
 
     # Ground truth: error maps.
