@@ -158,7 +158,7 @@ def test_preview_panels_show_normals_albedo_and_shading(tmp_path):
     mask[100:500, 50:350] = True
     normals = np.zeros((h, w, 3), np.float32)
     normals[...] = [0.6, 0.0, 0.8]
-    yy, xx = np.mgrid[:h, :w]
+    _, xx = np.mgrid[:h, :w]
     height = -0.05 * xx.astype(np.float32)  # a plane falling to the right: one shade
     write_preview(tmp_path / "p.png", normals, np.full((h, w), 0.5, np.float32), height, mask)
     img = cv2.imread(str(tmp_path / "p.png"))[..., ::-1]
