@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ..core._safe import safe_sqrt
 from ._grid import bilateral, lsq_midpoint
 from ._poisson import dct_poisson
 
@@ -192,7 +193,7 @@ def _residual_map(z, gc, gr, valid):
                 + jnp.pad(b, ((0, 1), (0, 0)), constant_values=zero))
 
     total = spread(rh, rv) / jnp.maximum(spread(eh.astype(dt), ev.astype(dt)), jnp.ones((), dt))
-    return jnp.where(total > 0, jnp.sqrt(jnp.where(total > 0, total, 1)), 0)  # sqrt'(0) = inf
+    return safe_sqrt(total)  # finite gradient where the residual is 0
 
 
 def integrability_map(

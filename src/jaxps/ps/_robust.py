@@ -38,8 +38,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..core._linalg import REL_DET_MIN, solve3
-from ..core._status import Status
 from ..core._safe import safe_divide, safe_sqrt
+from ..core._status import Status
 from ._l2 import PSResult
 
 __all__ = ["ps_barsky", "ps_irls", "ps_sbl"]
@@ -65,6 +65,16 @@ def _weighted_solve(w, lights, i):
     wi = w[:, None] * i if i.ndim == 2 else w * i
     b, rel_det = solve3(a, lights.T @ wi)
     return b, a, rel_det
+
+
+def _loop_inputs(grey, lights, used):
+    """What the reweighting loops of `irls` and `sbl` run on: `grey` and `lights` as constants
+    (reverse mode cannot differentiate a `while_loop`; the gradient is that of the final
+    weighted solve in `_finish`, its weights held fixed), and the pixel's mean used intensity."""
+    grey, lights = jax.lax.stop_gradient(grey), jax.lax.stop_gradient(lights)
+    dtype = grey.dtype
+    mean_used = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(jnp.sum(used), 1).astype(dtype)
+    return grey, lights, jnp.maximum(mean_used, jnp.finfo(dtype).tiny)
 
 
 def _unit(b):
@@ -171,13 +181,9 @@ def _pixel_barsky(i, usable, lights, thresholds, threshold, max_drop):
 
 def _pixel_irls(i, usable, lights, thresholds, loss, delta, eps, rtol, max_steps, outlier):
     i, grey_in, finite, unsat, used = _prepare(i, usable, thresholds)
-    # The reweighting loop runs on constants (reverse mode cannot differentiate a while_loop);
-    # the gradient is that of the final weighted solve in `_finish`, its weights held fixed.
-    grey, lights_in = jax.lax.stop_gradient(grey_in), lights
-    lights = jax.lax.stop_gradient(lights)
+    lights_in = lights
+    grey, lights, scale = _loop_inputs(grey_in, lights, used)
     dtype = i.dtype
-    mean_used = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(jnp.sum(used), 1).astype(dtype)
-    scale = jnp.maximum(mean_used, jnp.finfo(dtype).tiny)
     w0 = used.astype(dtype)
     b0, _, _ = _weighted_solve(w0, lights, grey)
 
@@ -213,12 +219,9 @@ def _pixel_irls(i, usable, lights, thresholds, loss, delta, eps, rtol, max_steps
 def _pixel_sbl(i, usable, lights, thresholds, lambda1, lambda2, gamma_min, rtol, max_steps,
                outlier):
     i, grey_in, finite, unsat, used = _prepare(i, usable, thresholds)
-    # As in `_pixel_irls`: the loop on constants, the gradient from the final weighted solve.
-    grey, lights_in = jax.lax.stop_gradient(grey_in), lights
-    lights = jax.lax.stop_gradient(lights)
+    lights_in = lights
+    grey, lights, scale = _loop_inputs(grey_in, lights, used)
     dtype = i.dtype
-    mean_used = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(jnp.sum(used), 1).astype(dtype)
-    scale = jnp.maximum(mean_used, jnp.finfo(dtype).tiny)
     # Work in units of the pixel's mean intensity so the priors do not depend on its brightness.
     y = grey / scale
     eye = jnp.eye(3, dtype=dtype)
