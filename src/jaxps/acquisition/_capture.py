@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from ..core._host import aligned
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ._face import crop, detect_face
@@ -175,6 +176,6 @@ def load_capture(
             e, method = np.ones(len(images), np.float32), "none"
         shape = (-1,) + (1,) * (images.ndim - 1)
         images = images / e.reshape(shape)
-    return Capture(np.ascontiguousarray(images, dtype=np.float32), light_array, mask_array,
+    return Capture(aligned(images, np.float32), light_array, mask_array,
                    saturated, names, box, (1 / e).astype(np.float32),
                    tuple(n for n in given if n not in names), e, method)

@@ -18,13 +18,16 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
+from ..core._host import aligned_empty
 from ..lights._directions import validate_lights
-from ._l2 import PSResult
+from ._l2 import PSResult, ps_l2_at
 from ._photometric_stereo import PS_METHODS, photometric_stereo
 
 __all__ = ["photometric_stereo_batch"]
 
 _CACHE: dict = {}
+# `photometric_stereo`'s defaults for the L2 options, in the solver's `thresholds` order.
+_L2_THRESHOLDS = {"dark_threshold": 1e-3, "saturation": 1.0, "shadow_threshold": None}
 
 
 def _stack_captures(images):
@@ -40,7 +43,12 @@ def _stack_captures(images):
                     f"images: capture {i} has shape {s} but capture 0 has {shapes[0]}; a batch "
                     "needs captures of one size (crop or resize them, or solve them separately)")
         on_device = any(isinstance(c, jax.Array) for c in images)
-        images = jnp.stack([jnp.asarray(c) for c in images]) if on_device else np.stack(images)
+        if on_device:
+            images = jnp.stack([jnp.asarray(c) for c in images])
+        else:
+            images = [np.asarray(c) for c in images]
+            images = np.stack(images, out=aligned_empty((len(images), *shapes[0]),
+                                                       np.result_type(*images)))
     elif not isinstance(images, jax.Array):
         images = np.asarray(images)
     if images.ndim not in (4, 5):
@@ -61,6 +69,37 @@ def _batched_fn(method, options, shared_lights, shared_mask, vmap_size):
     def single(images, lights, mask, sample_mask):
         return photometric_stereo(images, lights, mask=mask, sample_mask=sample_mask,
                                   method=method, **options)
+
+    if (method == "l2" and shared_lights and vmap_size is None
+            and set(options) <= set(_L2_THRESHOLDS)):
+        # The default path: the L2 kernel reads each capture's planes straight from the stack
+        # (`ps_l2_at`), so no capture is sliced out (copied) before its solve.
+        limits = {**_L2_THRESHOLDS, **options}
+        limits["shadow_threshold"] = (-np.inf if limits["shadow_threshold"] is None
+                                      else limits["shadow_threshold"])
+
+        def batched_l2(images, lights, mask, sample_mask):
+            out_dtype = images.dtype
+            dtype = jnp.float32 if out_dtype == jnp.float16 else out_dtype  # as `_run`
+            stack = (images[..., None] if images.ndim == 4 else images).astype(dtype)
+            thresholds = tuple(jnp.asarray(limits[name], dtype) for name in _L2_THRESHOLDS)
+
+            def one(xs):
+                i, msk, smask = xs
+                res = ps_l2_at(stack, i, lights.astype(dtype), mask if shared_mask else msk,
+                               smask, thresholds)
+                albedo = res.albedo[..., 0] if images.ndim == 4 else res.albedo
+                return res._replace(normals=res.normals.astype(out_dtype),
+                                    albedo=albedo.astype(out_dtype),
+                                    residual=res.residual.astype(out_dtype))
+
+            xs = (jnp.arange(images.shape[0]), None if shared_mask else mask, sample_mask)
+            return jax.lax.map(one, xs)
+
+        fn = jax.jit(batched_l2)
+        if key is not None:
+            _CACHE[key] = fn
+        return fn
 
     # Shared lights / mask stay unbatched (closed over), so per-light work is done once.
     def batched(images, lights, mask, sample_mask):
@@ -157,7 +196,7 @@ def photometric_stereo_batch(
     for start in range(0, n, step):
         sl = slice(start, min(start + step, n))
         part = images if (start == 0 and step >= n) else images[sl]
-        args = [jnp.asarray(part),
+        args = [jax.device_put(part),  # in place when 64-byte aligned (core/_host.py)
                 jnp.asarray(lights if shared_lights else lights[sl], images.dtype),
                 jnp.asarray(mask if shared_mask else mask[sl]),
                 None if sample_mask is None else jnp.asarray(sample_mask[sl])]

@@ -155,8 +155,10 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
         images = images[..., None]
     k, h, w, _ = images.shape
     mask = jnp.ones((h, w), bool) if mask is None else jnp.asarray(mask, bool)
-    sample_mask = (jnp.ones((k, h, w), bool) if sample_mask is None
-                   else jnp.asarray(sample_mask, bool))
+    if sample_mask is not None:
+        sample_mask = jnp.asarray(sample_mask, bool)
+    elif method != "l2":  # L2 takes None (no mask planes to read, or to copy into its `cond`)
+        sample_mask = jnp.ones((k, h, w), bool)
     thresholds = tuple(jnp.asarray(t, dtype) for t in thresholds)
     module, name = _SOLVERS[method]
     solver = getattr(importlib.import_module(f"{__package__}.{module}"), name)

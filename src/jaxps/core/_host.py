@@ -1,0 +1,33 @@
+"""Host arrays that XLA-CPU reads in place.
+
+A numpy array passed to a jitted function on the CPU is used without a copy when its data
+start on a 64-byte boundary; numpy's own allocations are only 16-byte aligned, and then every
+call copies the whole array first (about 10 ms for five 1280x1024 float32 frames on this
+project's machine, `benchmarks/bench_batch.py`). Stacks that jaxps builds on the host are
+therefore allocated here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+ALIGNMENT = 64
+
+
+def aligned_empty(shape, dtype) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data start on a 64-byte boundary."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    buf = np.empty(nbytes + ALIGNMENT, np.uint8)
+    start = (-buf.ctypes.data) % ALIGNMENT
+    return buf[start:start + nbytes].view(dtype).reshape(shape)
+
+
+def aligned(array, dtype=None) -> np.ndarray:
+    """`array` as a C-contiguous, 64-byte-aligned numpy array (itself when it already is one)."""
+    array = np.asarray(array, dtype)
+    if array.flags.c_contiguous and array.ctypes.data % ALIGNMENT == 0:
+        return array
+    out = aligned_empty(array.shape, array.dtype)
+    out[...] = array
+    return out
