@@ -89,6 +89,8 @@ def test_ambient_subtraction_clips_and_saturation_from_raw(tmp_path):
     np.testing.assert_allclose(cap.images[:, 0, 0], [0, 50 / 255, 205 / 255], rtol=1e-6)
     np.testing.assert_array_equal(cap.saturated[:, 0, 0], [False, False, True])
     assert cap.intensity_method == "none" and np.all(cap.gains == 1)
+    # 64-byte aligned, so that XLA-CPU takes the stack as a jit argument without a copy
+    assert cap.images.ctypes.data % 64 == 0 and cap.images.flags.c_contiguous
     # The default estimate cannot use a black frame: it falls back to "none", says so in the
     # capture and on the "jaxps" logger, and still loads.
     cap = acq.load_capture(paths, lights=np.eye(3), ambient=tmp_path / "amb.pgm")
