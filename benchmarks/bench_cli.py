@@ -7,6 +7,11 @@ the first run filled. Wall time is measured around the process; the per-stage ti
 its summary.json, and the rest (start-up, imports, tracing, the summary) is wall minus stages.
 Also timed: `jaxps --help`, `python -c "import jaxps"` and `python -c "import jax"` (best of 3).
 
+Shape buckets (when ../shared/data is there): the five Yale B subjects' frontal five-light
+captures, face-cropped, solved and integrated one after another in one fresh process with the
+compilation cache off, once with the detector's boxes (`crop_multiple=1`: one compile per new
+box size) and once with boxes grown to multiples of 64 (the default): seconds per capture.
+
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_cli.py [--quick]
     -> benchmarks/results/cli.json, cli.png
 """
@@ -78,6 +83,7 @@ def main():
                              "start_up_and_rest_s": wall - sum(stages.values()),
                              "outputs": sorted(p.name for p in out.iterdir())}
             res["reconstruct"][name] = {"frames": 5, "rows": rows, "columns": cols, **runs}
+    res["shape_buckets"] = _buckets(env)
     path = write_json("cli", res)
     _chart(res, path.with_suffix(".png"))
     for name, runs in res["reconstruct"].items():
@@ -88,6 +94,53 @@ def main():
                       + f", start-up and rest {r['start_up_and_rest_s']:.2f}")
     for name, t in res["start_up_s"].items():
         print(f"{name:>14}: {t:.3f} s")
+    for mode, r in res["shape_buckets"].items():
+        if isinstance(r, dict):
+            print(f"{mode}: {r['distinct_shapes']} shapes, "
+                  + ", ".join(f"{c['seconds']:.2f}" for c in r["captures"])
+                  + f" s per capture, {r['total_s']:.2f} s in all")
+
+
+SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
+NAMES = ("A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20")
+
+
+def _buckets(env):
+    """Seconds per face-cropped capture, without and with shape buckets (fresh processes)."""
+    data = pathlib.Path(os.environ.get("JAXPS_DATA", pathlib.Path(__file__).resolve()
+                                       .parents[2] / "shared" / "data")) / "yaleb"
+    if not data.is_dir():
+        return {"skipped": f"no Yale B data at {data}"}
+    out = {}
+    for multiple in (1, 64):
+        proc = subprocess.run([sys.executable, __file__, "--buckets-child", str(multiple)],
+                              env={**env, "JAXPS_CACHE_DIR": "off", "JAXPS_YALEB": str(data)},
+                              check=True, capture_output=True, text=True)
+        out[f"crop_multiple={multiple}"] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return out
+
+
+def _buckets_child(multiple):
+    import jax
+
+    import jaxps
+
+    data = pathlib.Path(os.environ["JAXPS_YALEB"])
+    rows = []
+    for subject in SUBJECTS:
+        folder = data / subject
+        t0 = time.perf_counter()
+        cap = jaxps.acquisition.load_capture(
+            [folder / f"{subject}_P00{n}.pgm" for n in NAMES], yale_names=True,
+            ambient=folder / f"{subject}_P00_Ambient.pgm", crop_face=True,
+            crop_multiple=multiple)
+        res = jaxps.photometric_stereo(cap.images, cap.lights, mask=cap.mask)
+        z = jaxps.integrate(res.normals, mask=res.status == 0)
+        jax.block_until_ready(jaxps.normals_from_height(z))
+        rows.append({"subject": subject, "shape": list(cap.images.shape[1:3]),
+                     "seconds": time.perf_counter() - t0})
+    print(json.dumps({"captures": rows, "distinct_shapes": len({tuple(r["shape"]) for r in rows}),
+                      "total_s": sum(r["seconds"] for r in rows)}))
 
 
 def _chart(res, path):
@@ -117,4 +170,7 @@ def _chart(res, path):
 
 
 if __name__ == "__main__":
-    main()
+    if "--buckets-child" in sys.argv:
+        _buckets_child(int(sys.argv[sys.argv.index("--buckets-child") + 1]))
+    else:
+        main()

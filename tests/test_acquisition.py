@@ -198,3 +198,30 @@ def test_srgb_decoding_matches_colour_science():
     v = np.linspace(0, 1, 1001, dtype=np.float32)
     np.testing.assert_allclose(srgb_to_linear(v), colour.cctf_decoding(v, function="sRGB"),
                                rtol=1e-6, atol=1e-7)
+
+
+def test_bucket_box_grows_about_the_centre_within_the_image():
+    # 100x90 at (50, 60) in 480x640 -> 128x128, centred: 14 rows and 19 columns added before.
+    assert acq.bucket_box((50, 60, 100, 90), (480, 640)) == (36, 41, 128, 128)
+    # At the top-left edge the grown box is shifted inward; past the image it is the image.
+    assert acq.bucket_box((0, 3, 100, 90), (480, 640)) == (0, 0, 128, 128)
+    assert acq.bucket_box((5, 600, 140, 30), (150, 640)) == (0, 576, 150, 64)
+    # Already a multiple, or multiple=1: unchanged.
+    assert acq.bucket_box((7, 9, 128, 64), (480, 640)) == (7, 9, 128, 64)
+    assert acq.bucket_box((7, 9, 101, 77), (480, 640), multiple=1) == (7, 9, 101, 77)
+    with pytest.raises(ValueError, match="multiple"):
+        acq.bucket_box((0, 0, 10, 10), (20, 20), multiple=0)
+
+
+def test_face_crops_of_different_sizes_share_one_shape(data):
+    """Yale B subjects' face boxes differ; grown to multiples of 64 they share shapes."""
+    folder = data / "yaleb"
+    shapes, raw = set(), set()
+    for subject in ("yaleB01", "yaleB02", "yaleB03"):
+        img = acq.read_image(folder / subject / f"{subject}_P00A+000E+00.pgm")
+        box = acq.detect_face(img)
+        raw.add(box[2:])
+        t, l, h, w = acq.bucket_box(box, img.shape)
+        assert t <= box[0] and l <= box[1] and t + h >= box[0] + box[2] and l + w >= box[1] + box[3]
+        shapes.add((h, w))
+    assert len(shapes) < len(raw)

@@ -11,7 +11,7 @@ colour-science load on first use.
 """
 
 from ._capture import Capture, load_capture
-from ._face import crop, detect_face
+from ._face import bucket_box, crop, detect_face
 from ._files import FRAME_EXTENSIONS, list_frames, load_stack, read_image, read_mask
 from ._psm import load_psm
 from ._quality import (
@@ -34,6 +34,7 @@ __all__ = [
     "Registration",
     "check_file",
     "check_frames",
+    "bucket_box",
     "crop",
     "detect_face",
     "drop_flagged",

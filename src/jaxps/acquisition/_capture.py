@@ -18,7 +18,7 @@ import numpy as np
 from ..core._host import aligned
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
-from ._face import crop, detect_face
+from ._face import bucket_box, crop, detect_face
 from ._files import PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
 from ._stack import mask_from_intensity, subtract_ambient
@@ -65,6 +65,7 @@ def load_capture(
     mask: PathLike | np.ndarray | str | None = None,
     intensities: str = "frontal",
     crop_face: bool = False,
+    crop_multiple: int = 64,
     linearize: str = "auto",
     check_quality: bool = False,
 ) -> Capture:
@@ -84,7 +85,10 @@ def load_capture(
       `"semi_calibrated"` (the joint fit, K >= 4) or `"none"` (frames as read). On five-light
       Yale B faces against a semi-calibrated 29-light reference (`benchmarks/bench_faces.py`),
       `"none"` costs about 8 degrees of median normal error; see docs/captures.md.
-    - `crop_face`: crop to the face found by `detect_face` in the mean frame.
+    - `crop_face`: crop to the face found by `detect_face` in the mean frame, grown to sides
+      that are multiples of `crop_multiple` pixels (`bucket_box`: captures then share compiled
+      programs instead of compiling each stage again for every new box size; 1 keeps the
+      detector's box).
     - `linearize`: see `read_image`.
     - `check_quality`: run `jaxps.check_frames` on the ambient-subtracted frames and drop the
       flagged ones (logged on logger `"jaxps"`; `ValueError` if fewer than 3 remain).
@@ -146,6 +150,7 @@ def load_capture(
         box = detect_face(images.mean(axis=0))
         if box is None:
             raise ValueError(f"no face found in the mean of frames {names[0]}...{names[-1]}")
+        box = bucket_box(box, images.shape[1:3], multiple=crop_multiple)
         images, saturated = crop(images, box, axis=1), crop(saturated, box, axis=1)
         if mask_array is not None:
             mask_array = crop(mask_array, box)

@@ -7,7 +7,7 @@ import os
 import numpy as np
 from jaxtyping import Float
 
-__all__ = ["crop", "detect_face"]
+__all__ = ["bucket_box", "crop", "detect_face"]
 
 
 def detect_face(
@@ -52,3 +52,26 @@ def crop(array: np.ndarray, box: tuple[int, int, int, int], *, axis: int = 0) ->
     t, l, h, w = box
     index = (slice(None),) * axis + (slice(t, t + h), slice(l, l + w))
     return array[index]
+
+
+def bucket_box(
+    box: tuple[int, int, int, int], shape: tuple[int, int], *, multiple: int = 64
+) -> tuple[int, int, int, int]:
+    """Grow `box` = (top, left, height, width) about its centre to sides that are multiples of
+    `multiple` pixels, kept inside an image of `shape` = (H, W) (shifted inward at an edge; a
+    side longer than the image becomes the whole image).
+
+    Every new image size costs a compile of each jitted stage (about a second per size on a
+    CPU); face boxes differ from capture to capture by a few pixels, so rounding them up lets
+    the captures of a session share compiled programs. The extra margin is real image, not
+    padding: results inside the original box do not change. `multiple=1` returns `box`.
+    """
+    if not (isinstance(multiple, int) and multiple >= 1):
+        raise ValueError(f"multiple must be a positive int, got {multiple!r}")
+    out = []
+    for start, size, full in ((box[0], box[2], shape[0]), (box[1], box[3], shape[1])):
+        grown = min(-(-size // multiple) * multiple, full)
+        first = min(max(start - (grown - size) // 2, 0), full - grown)
+        out.append((first, grown))
+    (t, h), (l, w) = out
+    return t, l, h, w
