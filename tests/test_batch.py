@@ -48,7 +48,7 @@ def test_batch_l2_stack_path_equals_single_calls(colour, dtype):
     lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
     rng = np.random.default_rng(0)
     sample_mask = rng.random(images.shape[:4]) > 0.05
-    opts = dict(mask=mask, sample_mask=sample_mask, shadow_threshold=0.05)
+    opts = {"mask": mask, "sample_mask": sample_mask, "shadow_threshold": 0.05}
     batch = jaxps.photometric_stereo_batch(list(images), lights, **opts)
     assert batch.normals.dtype == dtype and batch.albedo.shape == images.shape[:1] + images.shape[2:]
     for i in range(len(images)):
