@@ -97,7 +97,7 @@ def reconstruct(
             return jax.block_until_ready(res)
 
         res = stages.run("photometric stereo", solve)
-        ok = np.asarray(res.status == 0)
+        ok = np.asarray(res.status) == 0
         height = stages.run("integrate", lambda: np.asarray(
             integrate(res.normals, mask=ok if ok.any() else None, method=integration)))
 

@@ -28,6 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ..core._host import to_device
 from ..core._safe import safe_sqrt
 from ._grid import bilateral, lsq_midpoint
 from ._poisson import dct_poisson
@@ -76,21 +77,21 @@ class IntegrationResult(NamedTuple):
 
 
 def _check_normals(normals, mask):
-    normals = jnp.asarray(normals)
+    normals = to_device(normals)
     if normals.ndim != 3 or normals.shape[-1] != 3:
         raise ValueError(f"normals must be (H, W, 3), got shape {normals.shape}")
     if not jnp.issubdtype(normals.dtype, jnp.floating):
         raise ValueError(f"normals must be floating point, got {normals.dtype}")
     h, w, _ = normals.shape
+    # Host-side checks on host arrays: no small jitted op to compile in a fresh process.
     if mask is None:
-        mask = jnp.ones((h, w), bool)
-    else:
-        if np.shape(mask) != (h, w):
-            raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {np.shape(mask)}")
-        mask = jnp.asarray(mask, bool)
-        if not bool(jnp.any(mask)):
-            raise ValueError("mask is empty: no pixel to integrate")
-    return normals, mask
+        return normals, to_device(np.ones((h, w), bool))
+    if np.shape(mask) != (h, w):
+        raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {np.shape(mask)}")
+    empty = (not bool(jnp.any(mask))) if isinstance(mask, jax.Array) else not np.any(mask)
+    if empty:
+        raise ValueError("mask is empty: no pixel to integrate")
+    return normals, to_device(mask, bool)
 
 
 def _check_intrinsics(intrinsics):
@@ -403,8 +404,11 @@ def integrate(
     """
     if method not in INTEGRATION_METHODS:
         raise ValueError(f"method must be one of {INTEGRATION_METHODS}, got {method!r}")
-    ps = jnp.asarray(pixel_size)  # a traced pixel_size (jax.grad) passes through
-    if not bool(jnp.isfinite(ps) & (ps > 0)):
+    if isinstance(pixel_size, jax.Array):  # also a traced one (jax.grad)
+        ok = bool(jnp.isfinite(pixel_size) & (pixel_size > 0))
+    else:
+        ok = bool(np.isfinite(pixel_size) and pixel_size > 0)
+    if not ok:
         raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     if not (np.isfinite(k) and k > 0):
         raise ValueError(f"k must be positive, got {k}")
@@ -420,9 +424,9 @@ def integrate(
     if method in ("fc", "dct") and not return_info and (cam is None or method == "dct"):
         # The common cases in one jit: no full-size temporaries between the steps.
         if method == "fc":
-            height, any_valid = _fc_orthographic(normals, mask, jnp.asarray(pixel_size, dtype))
+            height, any_valid = _fc_orthographic(normals, mask, to_device(pixel_size, dtype))
         else:
-            height, any_valid = _dct_fused(normals, mask, jnp.asarray(pixel_size, dtype), cam)
+            height, any_valid = _dct_fused(normals, mask, to_device(pixel_size, dtype), cam)
         if not bool(any_valid):
             raise ValueError("normals has no finite, non-zero normal inside mask")
         return height

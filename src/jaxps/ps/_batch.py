@@ -48,7 +48,7 @@ def _stack_captures(images):
         else:
             images = [np.asarray(c) for c in images]
             images = np.stack(images, out=aligned_empty((len(images), *shapes[0]),
-                                                       np.result_type(*images)))
+                                                       np.result_type(*[c.dtype for c in images])))
     elif not isinstance(images, jax.Array):
         images = np.asarray(images)
     if images.ndim not in (4, 5):

@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from ..core._host import to_device
 from ._photometric_stereo import photometric_stereo
 
 __all__ = ["INTENSITY_METHODS", "intensity_estimate"]
@@ -51,31 +52,36 @@ def intensity_estimate(
     """
     if method not in INTENSITY_METHODS:
         raise ValueError(f"method must be one of {INTENSITY_METHODS}, got {method!r}")
-    images = jnp.asarray(images)
-    if images.ndim not in (3, 4) or not jnp.issubdtype(images.dtype, jnp.floating):
-        raise ValueError(f"images must be floating (K, H, W[, C]), got {images.shape} "
-                         f"{images.dtype}")
-    k = images.shape[0]
+    # Host-side (numpy) for "mean"/"frontal": a few sums, and no small jitted ops to trace and
+    # compile in a fresh process (the command line pays for each).
+    if not hasattr(images, "dtype"):
+        images = np.asarray(images)
+    shape, dtype = np.shape(images), np.dtype(images.dtype)
+    if len(shape) not in (3, 4) or not np.issubdtype(dtype, np.floating):
+        raise ValueError(f"images must be floating (K, H, W[, C]), got {shape} {dtype}")
+    k = shape[0]
     if method == "none":
-        return jnp.ones((k,), images.dtype)
+        return to_device(np.ones(k, dtype))
     if method == "semi_calibrated":
         res = photometric_stereo(images, lights, mask=mask, method="semi_calibrated",
                                  **options)
-        return res.info["intensities"].astype(images.dtype)
+        return res.info["intensities"].astype(dtype)
     lights = np.asarray(lights, np.float64)
     if lights.shape != (k, 3):
         raise ValueError(f"lights must be ({k}, 3), got {lights.shape}")
     lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)
-    grey = images if images.ndim == 3 else jnp.mean(images, axis=-1)
+    grey = np.asarray(images)
+    if grey.ndim == 4:
+        grey = grey.mean(axis=-1)
     sel = np.ones(grey.shape[1:], bool) if mask is None else np.asarray(mask, bool)
     if sel.shape != grey.shape[1:]:
         raise ValueError(f"mask must have shape {grey.shape[1:]}, got {sel.shape}")
     if not sel.any():
         raise ValueError("mask is empty")
-    means = np.asarray(jnp.mean(grey[:, sel], axis=1), np.float64)
+    means = grey[:, sel].mean(axis=1, dtype=np.float64)
     if np.any(~np.isfinite(means)) or np.any(means <= 0):
         raise ValueError(f"images: frame means over the mask must be positive, got {means}")
     if method == "frontal":
         means = means / np.maximum(lights[:, 2], 1e-3)
     e = means / np.exp(np.mean(np.log(means)))
-    return jnp.asarray(e, images.dtype)
+    return to_device(e.astype(dtype))

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
+from ..core._host import to_device
 from ..lights._directions import validate_lights
 from ._l2 import PSResult
 
@@ -38,8 +39,12 @@ PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
 _EAGER_SOLVERS = frozenset({"semi_calibrated", "oren_nayar"})
 
 
-def _check_images(images) -> tuple[jax.Array, bool]:
-    images = jnp.asarray(images)
+def _check_images(images) -> tuple[jax.Array | np.ndarray, bool]:
+    # Host arrays stay on the host: the jitted solve takes them as arguments (in place when
+    # 64-byte aligned, as `load_capture` returns them), where `jnp.asarray` would copy the
+    # stack and, in a fresh process, compile a conversion for its shape.
+    if not isinstance(images, jax.Array):
+        images = np.asarray(images)
     if not jnp.issubdtype(images.dtype, jnp.floating):
         raise ValueError(
             f"images must be floating point in [0, 1] (got dtype {images.dtype}); divide 8-bit "
@@ -136,6 +141,8 @@ def photometric_stereo(
         run = _run.__wrapped__ if method in _EAGER_SOLVERS else _run
     except TypeError:
         run = _run.__wrapped__
+    if run is not _run and not isinstance(images, jax.Array):
+        images = to_device(images)  # the eager solvers take device arrays
     return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
                static=static)
 
