@@ -112,8 +112,21 @@ def half_floor(frames, keys, ref_ok, order="azimuth"):
             "halves_info": [info_of(h) for h in halves]}, halves, ok
 
 
+def frame_residuals(frames, keys, ref, ok):
+    """Each frame's relative residual against the reference's Lambertian prediction
+    $\\max(0, l_k \\cdot b)$ over `ok`, with its own least-squares gain (so frames the
+    reference left out are judged too): a bad frame that `check_frames` missed stands out."""
+    b = np.asarray(ref.normals) * np.asarray(ref.albedo)[..., None]
+    out = {}
+    for k, light in zip(keys, np.asarray(lights_of(keys))):
+        pred, im = np.maximum(b @ light, 0)[ok], frames[k][ok]
+        gain = (pred @ im) / (pred @ pred)
+        out[f"{k[0]:+d},{k[1]:+d}"] = float(np.linalg.norm(im - gain * pred) / np.linalg.norm(im))
+    return out
+
+
 def references(frames):
-    """Reference, half-set floors and the evaluation mask of one subject.
+    """Reference, half-set floors, evaluation mask and frame residuals of one subject.
 
     The floor of the targets is the issue's: azimuth order over the lights the reference uses.
     Beside it, variants that show how much that one number depends on the split: the
@@ -143,7 +156,8 @@ def references(frames):
     else:
         variants["inconsistent_frames_kept"] = {**floor, "lights": len(keys),
                                                 "reference_vs_reference_median_deg": 0.0}
-    return keys, dropped, ref, halves, ok, floor, variants
+    residuals = frame_residuals(frames, within, ref, ref_ok)
+    return keys, dropped, ref, halves, ok, floor, variants, residuals
 
 
 def info_of(res):
@@ -335,7 +349,7 @@ def loo_choice(subjects: dict, choosable=CHOOSABLE) -> dict:
 
 
 def run_subject(subject, frames, refs, ctx_extra):
-    keys, dropped, ref, halves, ok, floor, variants = refs
+    keys, dropped, ref, halves, ok, floor, variants, residuals = refs
     five, five_dropped = clean(frames, list(CROSS))
     images = jnp.asarray(np.stack([frames[k] for k in five]))
     lights = lights_of(five)
@@ -349,6 +363,8 @@ def run_subject(subject, frames, refs, ctx_extra):
         "mask_pixels": int(ok.sum()),
         "floor": floor,
         "floor_variants": variants,
+        "frame_residuals": residuals,
+        "frame_residual_median": float(np.median(list(residuals.values()))),
         "five_lights": [f"{a:+d},{e:+d}" for a, e in five],
         "five_dropped": five_dropped,
         "candidates": {},
