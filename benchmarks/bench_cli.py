@@ -5,7 +5,8 @@ lights.txt (not timed); then `jaxps reconstruct` runs on them twice, each in a n
 first with an empty compilation-cache folder (`JAXPS_CACHE_DIR`), then again with the folder
 the first run filled. Wall time is measured around the process; the per-stage times come from
 its summary.json, and the rest (start-up, imports, tracing, the summary) is wall minus stages.
-Also timed: `jaxps --help`, `python -c "import jaxps"` and `python -c "import jax"` (best of 3).
+Also timed: `jaxps --help`, `python -c "import jaxps"`, `python -c "import jax"` and
+`python -c "import ml_dtypes"` (best of 3; the installed ml_dtypes version is recorded).
 
 Shape buckets (when ../shared/data is there): the five Yale B subjects' frontal five-light
 captures, face-cropped, solved and integrated one after another in one fresh process with the
@@ -18,6 +19,7 @@ box size) and once with boxes grown to multiples of 64 (the default): seconds pe
 
 from __future__ import annotations
 
+import importlib.metadata
 import json
 import os
 import pathlib
@@ -56,9 +58,11 @@ def main():
     res = {"command": " ".join(pathlib.Path(a).name for a in jaxps), "quick": QUICK,
            "env": environment(), "start_up_s": {}, "reconstruct": {}}
     res["env"]["OPENBLAS_NUM_THREADS"] = env.get("OPENBLAS_NUM_THREADS")
+    res["env"]["ml_dtypes"] = importlib.metadata.version("ml_dtypes")
     for name, argv in [("jaxps --help", [*jaxps, "--help"]),
                        ("import jaxps", [sys.executable, "-c", "import jaxps"]),
-                       ("import jax", [sys.executable, "-c", "import jax"])]:
+                       ("import jax", [sys.executable, "-c", "import jax"]),
+                       ("import ml_dtypes", [sys.executable, "-c", "import ml_dtypes"])]:
         res["start_up_s"][name] = min(_wall(argv, env) for _ in range(3))
     with tempfile.TemporaryDirectory() as tmp:
         tmp = pathlib.Path(tmp)
