@@ -71,9 +71,15 @@ def lolo_folds(fit, relight, images, lights, mask, methods, *, ps_method, satura
 def choose_regions(folds, mask, *, regions, margin):
     """The choice of `fit_brdf(method="auto")` from `lolo_folds`' output: `(name, gate (H, W)
     float64 0/1 or None, report dict)`; name is "lambertian" when no candidate is kept."""
+    if len(folds) < 2:
+        return "lambertian", None, {
+            "choice": "lambertian", "regions": regions, "margin": margin,
+            "folds": [f[0] for f in folds],
+            "reason": f"{len(folds)} leave-one-light-out folds: at least 2 are needed (K >= 5 "
+                      "training frames, the other K-1 lights spanning 3-D), so Lambert's law"}
     labels = region_labels(mask, regions)
     n_cells = regions * regions
-    names = list(folds[0][4]) if folds else []
+    names = list(folds[0][4])
 
     def cell_sse(pred, obs, valid):
         sel = valid & (labels >= 0)
@@ -118,20 +124,11 @@ def fit_auto(fit, relight, images, normals, albedo, lights, *, mask, candidates,
              ps_method, saturation, options):
     """`fit_brdf(method="auto")` (see the module docstring); `fit`, `relight` are `fit_brdf` and
     `relight` (passed in to avoid an import cycle)."""
-    k = images.shape[0]
-    if k < 5:
-        choice, gate = "lambertian", None
-        report = {"choice": "lambertian", "reason": f"K={k} frames: leave-one-light-out needs "
-                  "K >= 5 (with 3 frames a fold's Lambert fit is exact), so Lambert's law"}
-    else:
+    folds = []
+    if images.shape[0] >= 5:  # with 3 frames a fold's Lambert fit is exact: nothing to learn
         folds = lolo_folds(fit, relight, images, lights, mask, candidates, ps_method=ps_method,
                            saturation=saturation, options=options)
-        if len(folds) < 2:
-            choice, gate = "lambertian", None
-            report = {"choice": "lambertian", "reason": f"only {len(folds)} of {k} "
-                      "leave-one-out folds have lights spanning 3-D, so Lambert's law"}
-        else:
-            choice, gate, report = choose_regions(folds, mask, regions=regions, margin=margin)
+    choice, gate, report = choose_regions(folds, mask, regions=regions, margin=margin)
     model = fit(images, normals, albedo, lights, mask=mask, method=choice, **options)
     if gate is not None:
         model = dataclasses.replace(model, gate=jnp.asarray(gate, images.dtype))
