@@ -22,8 +22,9 @@ PUBLIC_MODULES = ("acquisition", "evaluate", "synthetic", "stability", "report")
 # Names added since the snapshot, on purpose: the stage subpackages (issue 14), and the quality,
 # registration and psm loaders under `jaxps.acquisition`, the stage they belong to.
 ADDED = {
-    "jaxps": ["acquisition", "cli", "core", "integration", "lights", "ps", "reflectance",
-              "report", "shading"],
+    # Issue 16: the held-out relighting protocol (`score_relighting` and its result).
+    "jaxps": ["RelightScore", "acquisition", "cli", "core", "integration", "lights", "ps",
+              "reflectance", "report", "score_relighting", "shading"],
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
                           "check_file", "check_frames", "drop_flagged", "estimate_shifts",
                           "load_psm", "register_frames", "shift_frames"],
@@ -38,6 +39,9 @@ ADDED = {
 # brdf_photometric_stereo, render_scene, render_corrupted, perturb_lights, sweep) is annotated
 # `jax.Array | int` (an int seed is accepted); those snapshot entries were rewritten; and
 # `jaxps.cli.reconstruct` gained `obj` and `points` (the OBJ and point cloud on request).
+# Issue 16: `BRDF_METHODS` gained `"auto"` (per-region choice by leave-one-light-out error),
+# `fit_brdf` gained its options `candidates`, `regions`, `margin`, `BRDFFit` the field `choice`
+# and `BRDFModel` the field `gate`; those snapshot entries were rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -82,6 +82,7 @@ from threadpoolctl import threadpool_limits
 from ..core._random import as_key
 from ..lights._directions import MAX_LIGHT_CONDITION
 from ..ps import photometric_stereo
+from ._auto import fit_auto
 from ._features import (
     _angles_elementwise,
     _features,
@@ -466,8 +467,6 @@ def fit_brdf(
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
     if method == "auto":
-        from ._auto import fit_auto
-
         if candidates is None:
             candidates = tuple(m for m in BRDF_METHODS if m not in ("lambertian", "auto"))
         bad = [m for m in candidates if m not in BRDF_METHODS or m in ("lambertian", "auto")]
