@@ -51,7 +51,7 @@ IMAGES = ROOT / "docs" / "images"
 SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
 REGIONS = (1, 2, 4, 8)
 MARGINS = (0.0, 1.0, 2.0, 3.0)
-PICTURE_LIGHT = (10, -20)  # one held-out light within 30 deg, shown in the pictures
+PICTURE_LIGHT = (-20, 10)  # one held-out light within 30 deg, shown in the pictures
 
 
 def options_of(name, n_samples, max_steps):
@@ -152,7 +152,8 @@ def loso(rows):
 
 def pictures(c, preds, path):
     """The real held-out photograph under PICTURE_LIGHT, each model's relit image and its
-    error (relit - real, gray levels, same colour scale for every model)."""
+    error (relit - real, gray levels, one colour scale), raw and after the image's
+    least-squares gain (the gain-invariant error: the flash strength taken out)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -160,27 +161,33 @@ def pictures(c, preds, path):
 
     real = c.images[c.angles.index(PICTURE_LIGHT)] * 255
     names = list(preds)
-    fig, axes = plt.subplots(2, len(names) + 1, figsize=(1.9 * (len(names) + 1), 4.6))
+    fig, axes = plt.subplots(3, len(names) + 1, figsize=(1.9 * (len(names) + 1), 6.9))
     box = np.argwhere(c.mask)
     (r0, c0), (r1, c1) = box.min(0), box.max(0) + 1
     crop = (slice(r0, r1), slice(c0, c1))
     axes[0, 0].imshow(real[crop], cmap="gray", vmin=0, vmax=255)
-    axes[0, 0].set_title(f"real {PICTURE_LIGHT}", fontsize=8)
-    axes[1, 0].axis("off")
+    axes[0, 0].set_title(f"real, light {PICTURE_LIGHT}", fontsize=8)
+    axes[1, 0].text(0.5, 0.5, "relit - real\n(raw)", ha="center", va="center", fontsize=9)
+    axes[2, 0].text(0.5, 0.5, "relit x best gain\n- real", ha="center", va="center",
+                    fontsize=9)
     for j, name in enumerate(names, start=1):
         p = preds[name] * 255
-        err = np.where(c.mask, p - real, np.nan)
-        rms = float(np.sqrt(np.nanmean(err**2)))
+        gain = float(p[c.mask] @ real[c.mask] / (p[c.mask] @ p[c.mask]))
         axes[0, j].imshow(np.where(c.mask, p, 0)[crop], cmap="gray", vmin=0, vmax=255)
         axes[0, j].set_title(name, fontsize=8)
-        im = axes[1, j].imshow(err[crop], cmap="RdBu_r", vmin=-40, vmax=40)
-        axes[1, j].set_title(f"error, RMSE {rms:.1f}", fontsize=7)
+        for row, q, label in ((1, p, "raw"), (2, gain * p, f"gain {gain:.2f}")):
+            err = np.where(c.mask, q - real, np.nan)
+            im = axes[row, j].imshow(err[crop], cmap="RdBu_r", vmin=-40, vmax=40)
+            axes[row, j].set_title(f"{label}: RMSE {np.sqrt(np.nanmean(err**2)):.1f}",
+                                   fontsize=7)
     for ax in axes.ravel():
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.colorbar(im, ax=axes[1, -1], fraction=0.05, label="gray")
-    fig.suptitle(f"{c.subject}: held-out light {PICTURE_LIGHT} (az, el deg)", fontsize=9)
-    fig.tight_layout()
+    for ax in axes[1:, 0]:
+        ax.axis("off")
+    fig.colorbar(im, ax=axes[1:, :].ravel().tolist(), fraction=0.02, label="gray")
+    fig.suptitle(f"{c.subject}: held-out light {PICTURE_LIGHT} (azimuth, elevation deg)",
+                 fontsize=9)
     fig.savefig(path, dpi=90)
     plt.close(fig)
 
