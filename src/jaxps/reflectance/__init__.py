@@ -13,10 +13,10 @@ from ._model_choice import ModelChoice, compare_models
 from ._score import RelightScore, score_relighting
 
 __all__ = [
-    "BRDFFit",
-    "BRDFModel",
     "BRDF_METHODS",
     "FEATURE_NAMES",
+    "BRDFFit",
+    "BRDFModel",
     "ModelChoice",
     "RelightScore",
     "brdf_features",

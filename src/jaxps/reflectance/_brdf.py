@@ -80,9 +80,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
 from ..core._random import as_key
-from ..lights._directions import MAX_LIGHT_CONDITION
-from ..ps import photometric_stereo
-from ._auto import fit_auto
+from ._auto import fit_auto, lolo_folds
 from ._features import (
     _angles_elementwise,
     _features,
@@ -475,11 +473,11 @@ def fit_brdf(
                              f"'lambertian' and 'auto', got {candidates!r}")
         if int(regions) < 1:
             raise ValueError(f"regions must be >= 1, got {regions!r}")
-        options = dict(key=key, n_samples=n_samples, hidden=hidden, bound=bound,
-                       support_deg=support_deg, min_count=min_count,
-                       lambertian_base=lambertian_base, use_xy=use_xy, solver=solver,
-                       max_steps=max_steps, saturation=saturation, shrink=shrink,
-                       ps_method=ps_method, frame_gains=frame_gains)
+        options = {"key": key, "n_samples": n_samples, "hidden": hidden, "bound": bound,
+                   "support_deg": support_deg, "min_count": min_count,
+                   "lambertian_base": lambertian_base, "use_xy": use_xy, "solver": solver,
+                   "max_steps": max_steps, "saturation": saturation,
+                   "ps_method": ps_method, "frame_gains": frame_gains}
         return fit_auto(fit_brdf, relight, images, normals, albedo, lights, mask=mask,
                         candidates=tuple(candidates), regions=int(regions), margin=float(margin),
                         ps_method=ps_method, saturation=saturation, options=options)
@@ -567,20 +565,12 @@ def _loo_shrink(images, lights, mask, ps_method, options):
     by one fold is not evidence that the correction transfers to new lights.
     """
     k = images.shape[0]
-    folds, skipped = [], []
-    for j in range(k):
-        keep = np.array([i for i in range(k) if i != j])
-        if np.linalg.cond(np.asarray(lights[keep], np.float64)) > MAX_LIGHT_CONDITION:
-            skipped.append(j)
-            continue
-        ps = photometric_stereo(images[keep], lights[keep], mask=mask, method=ps_method)
-        model = fit_brdf(images[keep], ps.normals, ps.albedo, lights[keep], mask=mask, **options)
-        full = np.asarray(relight(model, ps.normals, ps.albedo, lights[j]), np.float64)[0]
-        lam = np.asarray(relight(dataclasses.replace(model, bound=0.0), ps.normals, ps.albedo,
-                                 lights[j]), np.float64)[0]
-        obs = np.asarray(images[j], np.float64)
-        ok = mask & np.isfinite(obs) & (obs < options["saturation"]) & (np.asarray(ps.albedo) > 0)
-        folds.append(((obs - lam)[ok], (full - lam)[ok]))
+    options = dict(options)
+    method = options.pop("method")
+    done = lolo_folds(fit_brdf, relight, images, lights, mask, [method], ps_method=ps_method,
+                      saturation=options["saturation"], options=options)
+    folds = [((obs - lam)[ok], (preds[method] - lam)[ok]) for _, obs, ok, lam, preds in done]
+    skipped = sorted(set(range(k)) - {j for j, *_ in done})
     if len(folds) < 2:
         raise ValueError(f"shrink='loo': only {len(folds)} of {k} leave-one-out folds have "
                          "lights spanning 3-D; it needs at least 2")
