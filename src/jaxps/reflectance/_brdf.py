@@ -441,7 +441,8 @@ def fit_brdf(
     - `ps_method`: the photometric-stereo method for the folds of `shrink="loo"` (use the one
       that gave `normals` and `albedo`).
     - `candidates`, `regions`, `margin`: `method="auto"` only: the methods to choose among
-      (default every other method of `BRDF_METHODS`), the `regions` x `regions` grid over the
+      (default every method of `BRDF_METHODS` but `"lambertian"`, `"auto"` and
+      `"delaunay"`), the `regions` x `regions` grid over the
       mask's bounding box, and the standard errors by which a candidate must beat Lambert's
       law in a region (chosen leave-one-subject-out on Yale B, docs/brdf.md).
     - `frame_gains`: MLP methods: fit one brightness factor per training frame with the
@@ -465,8 +466,9 @@ def fit_brdf(
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
     if method == "auto":
-        if candidates is None:
-            candidates = tuple(m for m in BRDF_METHODS if m not in ("lambertian", "auto"))
+        if candidates is None:  # delaunay: a slow reference, worse than Lambert held out
+            candidates = tuple(m for m in BRDF_METHODS
+                               if m not in ("lambertian", "auto", "delaunay"))
         bad = [m for m in candidates if m not in BRDF_METHODS or m in ("lambertian", "auto")]
         if bad or not candidates:
             raise ValueError(f"candidates must be methods of {BRDF_METHODS} other than "
