@@ -227,8 +227,10 @@ def main():
     parser.add_argument("--models", nargs="+",
                         default=["lambertian", "mlp", "mlp_ratio", "delaunay", "mlp_loo", "auto"],
                         help="fit_brdf method names (jaxps.BRDF_METHODS) or bench_brdf variants")
-    parser.add_argument("--candidates", nargs="+", default=["mlp", "mlp_ratio", "delaunay"],
-                        help="the methods auto chooses among")
+    parser.add_argument("--candidates", nargs="+", default=["mlp", "mlp_ratio"],
+                        help="the methods auto chooses among (default: fit_brdf's, with "
+                        "BRDF_METHODS as of issue 16)")
+    parser.add_argument("--out", default=str(OUT / "relight.json"), help="the JSON to write")
     parser.add_argument("--n-samples", type=int, default=20_000)
     parser.add_argument("--max-steps", type=int, default=15)
     parser.add_argument("--no-pictures", action="store_true")
@@ -276,11 +278,11 @@ def main():
             pics["auto (LOSO)"] = preds[f"auto {row['auto_loso']['setting']}"]
         pictures(c, pics, IMAGES / f"relight_{c.subject}.png")
     res["seconds"] = time.perf_counter() - t0
-    path = OUT / "relight.json"
+    path = pathlib.Path(args.out)
     if quick:  # a smoke run: keep the stored figures
         res = {**(json.loads(path.read_text()) if path.exists() else {}), "quick": res}
     else:
-        chart(rows, OUT / "relight.png")
+        chart(rows, path.with_suffix(".png"))
     path.write_text(json.dumps(res, indent=1))
     print(f"wrote {path} ({res['seconds']:.0f} s)")
 
