@@ -17,7 +17,8 @@ METHODS (e.g. `mlp_loo`); every fit uses `--n-samples` and `--max-steps`.
 training frames) are computed once per subject; every setting of (regions, margin) in the grid
 below is scored on the held-out lights; for each subject, the setting with the smallest worst
 raw RMSE / Lambert within 30 deg over the *other four* subjects (then the smallest mean) is
-applied to it ("auto (LOSO)"). The same rule over all five gives the library's default.
+applied to it ("auto (LOSO)"); ties go to the larger margin, then the fewer regions. The
+same rule over all five gives the library's default.
 """
 
 from __future__ import annotations
@@ -128,21 +129,25 @@ def subject_run(c, models, candidates, n_samples, max_steps):
     return row, preds
 
 
-def pick(rows, subjects):
+def pick(rows, subjects, ties="conservative"):
     """The auto setting with the smallest worst raw RMSE / Lambert within 30 deg over
-    `subjects`, then the smallest mean (ties: the first in REGIONS x MARGINS order)."""
+    `subjects`, then the smallest mean. `ties="conservative"`: then the largest margin, then
+    the fewest regions (the model closest to Lambert's law among equals); `"first"`: the first
+    in REGIONS x MARGINS order (the rule of the first run, which gave yaleB04 margin 0)."""
     def key(setting):
+        a = rows[0]["auto"][setting]
         r = [row["auto"][setting]["ratio"]["raw_30"] for row in rows if row["subject"] in subjects]
-        return (max(r), float(np.mean(r)))
+        tail = (-a["margin"], a["regions"]) if ties == "conservative" else ()
+        return (max(r), float(np.mean(r)), *tail)
     return min(rows[0]["auto"], key=key)
 
 
-def loso(rows):
+def loso(rows, ties="conservative"):
     """Leave-one-subject-out: each subject scored with the setting picked on the others."""
     out = {}
     for row in rows:
         others = [r["subject"] for r in rows if r is not row]
-        setting = pick(rows, others)
+        setting = pick(rows, others, ties)
         a = row["auto"][setting]
         out[row["subject"]] = {"setting": setting, "picked_on": others, "choice": a["choice"],
                                "gate_fraction": a["gate_fraction"], "ratio": a["ratio"],
@@ -263,6 +268,7 @@ def main():
            "subjects": rows}
     if "auto" in args.models and len(rows) > 1:
         res["auto_loso"] = loso(rows)
+        res["auto_loso_ties_first"] = loso(rows, ties="first")
         res["auto_pick_all"] = pick(rows, [r["subject"] for r in rows])
         for row in rows:
             row["auto_loso"] = res["auto_loso"][row["subject"]]

@@ -608,7 +608,7 @@ def test_auto_keeps_reflectance_and_drops_frame_gains(scene):
     gains = np.array([1.0, 1.15, 0.9, 0.85, 1.1], np.float32)[:, None, None]
     lam_train = np.asarray(jaxps.render_lambertian(s["normals"], s["albedo"], s["train"]))
     lam_test = np.asarray(jaxps.render_lambertian(s["normals"], s["albedo"], s["test"]))
-    kw = dict(mask=s["mask"], method="auto", candidates=("mlp_ratio",), regions=2,
+    kw = dict(mask=s["mask"], method="auto", candidates=("mlp_ratio",), regions=2, margin=1.0,
               key=jax.random.key(0), **FAST)
     ps = jaxps.photometric_stereo(s["images"], s["train"], mask=s["mask"])
     model = jaxps.fit_brdf(s["images"], ps.normals, ps.albedo, s["train"], **kw)

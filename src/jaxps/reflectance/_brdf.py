@@ -394,8 +394,8 @@ def fit_brdf(
     ps_method: str = "l2",
     frame_gains: bool = True,
     candidates: tuple[str, ...] | None = None,
-    regions: int = 4,
-    margin: float = 1.0,
+    regions: int = 1,
+    margin: float = 3.0,
 ) -> BRDFModel:
     """Fit a BRDF to K images of one object with known normals, albedo and lights.
 
