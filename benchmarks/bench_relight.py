@@ -77,7 +77,7 @@ def subject_run(c, models, candidates, n_samples, max_steps):
            "test_lights_60": len(test), "test_lights_30": int(c.near.sum()),
            "mask_pixels": int(mask.sum()), "models": {}}
     fitted, preds = {}, {}  # preds: (H, W) relit under PICTURE_LIGHT
-    pic = [lights[test.index(c.angles.index(PICTURE_LIGHT))]]
+    pic = lights[[c.angles.index(PICTURE_LIGHT)]]
     for name in dict.fromkeys(["lambertian", *models, *candidates]):
         if name == "auto":
             continue

@@ -124,9 +124,7 @@ def score_relighting(
     valid = sel[None] & np.isfinite(obs)
     obs = np.where(valid, obs, 0.0)
     pred = np.asarray(relight(model, normals, albedo, lit), np.float64)
-    base = dataclasses.replace(model, method="lambertian", params=None)
-    if getattr(base, "gate", None) is not None:
-        base = dataclasses.replace(base, gate=None)
+    base = dataclasses.replace(model, method="lambertian", params=None, gate=None)
     lam = np.asarray(relight(base, normals, albedo, lit), np.float64)
     outside = np.asarray(extrapolation_mask(model, normals, lit))
     figs, g_model = _figures(pred, obs, valid, near, outside, scale)
