@@ -641,3 +641,42 @@ def test_auto_keeps_reflectance_and_drops_frame_gains(scene):
     with pytest.raises(ValueError, match="candidates"):
         jaxps.fit_brdf(s["images"], s["normals"], s["albedo"], s["train"], method="auto",
                        candidates=("auto",))
+
+
+def test_auto_on_yale_falls_back_to_lambert(data):
+    """yaleB01, the scanner's five lights: with its default settings `method="auto"` finds no
+    candidate that predicts the left-out training lights by 3 standard errors better than
+    Lambert's law, so it is Lambert's law, and `score_relighting` says so (ratio 1) on the
+    clean held-out lights within 30 degrees; Lambert's raw error there against numpy."""
+    import cv2
+
+    folder = data / "yaleb" / "yaleB01"
+    ambient = cv2.imread(str(folder / "yaleB01_P00_Ambient.pgm"), cv2.IMREAD_UNCHANGED)
+
+    def load(names):
+        return np.stack([(cv2.imread(str(folder / f"yaleB01_P00{n}.pgm"),
+                                     cv2.IMREAD_UNCHANGED).astype(np.float32)
+                          - ambient.astype(np.float32)) / 255 for n in names])
+
+    train = ["A+000E+00", "A+000E+20", "A+000E-20", "A+025E+00", "A-025E+00"]
+    test = ["A+005E+10", "A-010E+00", "A+010E-20", "A-020E+10", "A+015E+20"]
+    angles = np.array([jaxps.parse_yale_name(f"yaleB01_P00{n}.pgm") for n in train + test])
+    lights = jaxps.lights_from_angles(angles[:, 0], angles[:, 1])
+    images = load(train)
+    ps = jaxps.photometric_stereo(images, lights[:5])
+    mask = (np.asarray(ps.status) == 0) & (np.min(images, axis=0) >= 10 / 255)
+    model = jaxps.fit_brdf(images, ps.normals, ps.albedo, lights[:5], mask=mask, method="auto",
+                           n_samples=5_000, max_steps=8, key=0)
+    choice = model.fit.choice
+    assert model.method == "lambertian" and model.gate is None, choice
+    assert set(choice["lolo_rmse"]) == {"lambertian", "mlp", "mlp_ratio"}
+    assert choice["folds"] == [0, 1, 2, 3, 4] and "3 standard errors" in choice["reason"]
+    obs = load(test)
+    score = jaxps.score_relighting(model, obs, ps.normals, ps.albedo, lights[5:], mask=mask)
+    assert score.lights == {"30": 5, "60": 5}
+    assert score.ratio["raw_30"] == 1.0 and score.ratio["gain_30"] == 1.0
+    lam = np.asarray(ps.albedo)[None] * np.maximum(
+        np.einsum("hwc,kc->khw", np.asarray(ps.normals, np.float64), lights[5:]), 0)
+    want = np.sqrt(np.mean((255 * (lam - obs))[:, mask] ** 2))
+    np.testing.assert_allclose(score.lambertian["raw_30"], want, rtol=1e-4)
+    assert 5 < want < 40  # gray levels: a real error, not a degenerate one
