@@ -283,14 +283,14 @@ def main():
         row = next(r for r in rows if r["subject"] == c.subject)
         pics = {n: preds[n] for n in args.models if n in preds}
         pictures(c, pics, IMAGES / f"relight_{c.subject}.png")
-    res["seconds"] = time.perf_counter() - t0
+    res["seconds"] = seconds = time.perf_counter() - t0
     path = pathlib.Path(args.out)
     if quick:  # a smoke run: keep the stored figures
         res = {**(json.loads(path.read_text()) if path.exists() else {}), "quick": res}
     else:
         chart(rows, path.with_suffix(".png"))
     path.write_text(json.dumps(res, indent=1))
-    print(f"wrote {path} ({res['seconds']:.0f} s)")
+    print(f"wrote {path} ({seconds:.0f} s)")
 
 
 if __name__ == "__main__":
