@@ -35,6 +35,7 @@ import optimistix as optx
 import scipy.ndimage
 
 import jaxps
+from jaxps.reflectance._score import image_gains, rmse_gray
 
 try:
     from benchmarks._common import clean_frames
@@ -125,21 +126,19 @@ def face_mask(train_images, ps):
 
 
 def rmse(pred, obs, sel):
-    d = (np.asarray(pred) - obs)[sel] * 255.0
-    return float(np.sqrt(np.mean(d**2))) if d.size else float("nan")
+    return rmse_gray(pred, obs, sel)
 
 
 def gain_rmse(pred, obs, mask, near=None):
     """RMSE after each test image gets its own least-squares scalar gain over the mask, the same
     for every method ("gain-compensated": the flash brightness of a held-out frame is unknown
-    to any model). `near`: `(K,)` bool, the images to pool (default all)."""
-    errs = []
-    for p, o in zip(np.asarray(pred), obs):
-        pm, om = p[mask], o[mask]
-        g = float(pm @ om / max(pm @ pm, 1e-12))
-        errs.append((g * pm - om) * 255.0)
-    errs = np.stack(errs) if near is None else np.stack(errs)[np.asarray(near)]
-    return float(np.sqrt(np.mean(errs**2))) if errs.size else float("nan")
+    to any model). `near`: `(K,)` bool, the images to pool (default all). The figures of
+    `jaxps.score_relighting`, which the held-out protocol of bench_relight.py uses."""
+    pred = np.asarray(pred)
+    valid = np.broadcast_to(mask, pred.shape)
+    g = image_gains(pred, obs, valid)[:, None, None]
+    sel = valid if near is None else valid & np.asarray(near)[:, None, None]
+    return rmse_gray(pred * g, obs, sel)
 
 
 def loo_gray(loo):

@@ -22,8 +22,9 @@ PUBLIC_MODULES = ("acquisition", "evaluate", "synthetic", "stability", "report")
 # Names added since the snapshot, on purpose: the stage subpackages (issue 14), and the quality,
 # registration and psm loaders under `jaxps.acquisition`, the stage they belong to.
 ADDED = {
-    "jaxps": ["acquisition", "cli", "core", "integration", "lights", "ps", "reflectance",
-              "report", "shading"],
+    # Issue 16: the held-out relighting protocol (`score_relighting` and its result).
+    "jaxps": ["RelightScore", "acquisition", "cli", "core", "integration", "lights", "ps",
+              "reflectance", "report", "score_relighting", "shading"],
     # Issue 18: `bucket_box`, face boxes grown to shape buckets (fewer compiles).
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
                           "bucket_box", "check_file", "check_frames", "drop_flagged",
@@ -40,6 +41,9 @@ ADDED = {
 # `jax.Array | int` (an int seed is accepted); those snapshot entries were rewritten; and
 # `jaxps.cli.reconstruct` gained `obj` and `points` (the OBJ and point cloud on request).
 # Issue 18: `load_capture` gained `crop_multiple` (face boxes grown to shape buckets).
+# Issue 16: `BRDF_METHODS` gained `"auto"` (per-region choice by leave-one-light-out error),
+# `fit_brdf` gained its options `candidates`, `regions`, `margin`, `BRDFFit` the field `choice`
+# and `BRDFModel` the field `gate`; those snapshot entries were rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -60,6 +60,7 @@ _NAMES = {
     "reflectance": (
         "BRDF_METHODS", "FEATURE_NAMES", "BRDFFit", "BRDFModel", "ModelChoice", "brdf_features",
         "brdf_photometric_stereo", "compare_models", "extrapolation_mask", "fit_brdf", "relight",
+        "RelightScore", "score_relighting",
     ),
     "shading": (
         "OREN_NAYAR_FORMS", "LambertianCheck", "RoughnessFit", "fit_roughness", "lambertian_check",
@@ -105,6 +106,7 @@ __all__ = [
     "QualityReport",
     "QualityThresholds",
     "Registration",
+    "RelightScore",
     "RoughnessFit",
     "Status",
     "angular_error",
@@ -140,6 +142,7 @@ __all__ = [
     "relight",
     "render_lambertian",
     "render_oren_nayar",
+    "score_relighting",
     "shift_frames",
     "sphere_from_mask",
     "status_counts",

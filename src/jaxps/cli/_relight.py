@@ -41,7 +41,7 @@ def relight_capture(
     yale_names: bool = False,
     ambient=None,
     mask="auto",
-    method: str = "mlp_ratio",
+    method: str = "auto",
     new_lights: list[tuple[float, float]] = (),
     circle_zenith_deg: float = 30.0,
     circle_frames: int = 36,
@@ -55,7 +55,9 @@ def relight_capture(
     **Arguments:**
     - `frames`, `lights`, `yale_names`, `ambient`, `mask`: as for `jaxps.acquisition.load_capture`
       (grey frames; colour frames are averaged to grey).
-    - `method`: one of `jaxps.BRDF_METHODS`.
+    - `method`: one of `jaxps.BRDF_METHODS` (default `"auto"`: Lambert's law unless the
+      training frames show, leave-one-light-out, that a richer model predicts unseen lights;
+      K + 1 fits per candidate).
     - `new_lights`: (azimuth, elevation) pairs in degrees (Yale B convention), one PNG each.
     - `circle_zenith_deg`, `circle_frames`: the animation's light circles the view axis at this
       zenith angle in this many frames.
@@ -143,5 +145,7 @@ def run(args) -> int:
     print(f"relight: {args.method} on {len(s['frames'])} frames, {s['mask_pixels']} pixels: "
           f"training RMSE {fit['rmse']:.4g} (x255 = {s['fit_rmse_gray_8bit']:.2f}), "
           f"R {fit['r']:.4f}, {fit['steps']} steps, converged {fit['converged']}")
+    if fit.get("choice"):
+        print(f"relight: {fit['message']}")
     print(f"outputs: {args.out}/" + " ".join(s["files"]) + " relight.json")
     return 0

@@ -80,8 +80,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
 from ..core._random import as_key
-from ..lights._directions import MAX_LIGHT_CONDITION
-from ..ps import photometric_stereo
+from ._auto import fit_auto, lolo_folds
 from ._features import (
     _angles_elementwise,
     _features,
@@ -97,7 +96,7 @@ __all__ = [
     "relight",
 ]
 
-BRDF_METHODS = ("mlp", "mlp_ratio", "delaunay", "lambertian")
+BRDF_METHODS = ("mlp", "mlp_ratio", "delaunay", "lambertian", "auto")
 
 
 class BRDFFit(NamedTuple):
@@ -120,6 +119,11 @@ class BRDFFit(NamedTuple):
       left-out frames whose fold was skipped: the other lights did not span 3-D); else None.
     - `frame_gains`: with `fit_brdf(..., frame_gains=True)`, the `K` fitted brightness factors
       of the training frames (geometric mean 1; the model renders at 1); else None.
+    - `choice`: with `method="auto"`, what was picked and why: `"choice"`, `"reason"`, and
+      (with K >= 5) the leave-one-light-out RMSE of Lambert and each candidate (`"lolo_rmse"`;
+      `"gated_lolo_rmse"`: the candidate kept only in its `"kept_cells"`), `"regions"`,
+      `"margin"`, `"folds"`, `"gate_fraction"`; else None. The other figures are the chosen
+      method's fit on every pixel (before the gate).
     """
 
     steps: int
@@ -133,6 +137,7 @@ class BRDFFit(NamedTuple):
     shrink: float = 1.0
     loo_rmse: dict | None = None
     frame_gains: tuple[float, ...] | None = None
+    choice: dict | None = None
 
 
 class BRDFModel(eqx.Module):
@@ -145,6 +150,9 @@ class BRDFModel(eqx.Module):
       (cells of `cell` radians; a cell is occupied with at least `min_count` samples).
     - `rho_ref`: median training albedo (the correction's scale for `method="mlp"`).
     - `fit`: a `BRDFFit`.
+    - `gate`: `(H, W)` weight of the model against Lambert's law per pixel (`method="auto"`'s
+      per-region choice: `relight` renders $L + \\text{gate} (M - L)$), or None (the model
+      everywhere).
     """
 
     method: str = eqx.field(static=True)
@@ -159,6 +167,7 @@ class BRDFModel(eqx.Module):
     use_xy: bool = eqx.field(static=True)
     interpolator: object = eqx.field(static=True, default=None)
     fit: BRDFFit | None = eqx.field(static=True, default=None)
+    gate: Array | None = None
 
 
 # ----------------------------------------------------------------------------- one sample
@@ -384,6 +393,9 @@ def fit_brdf(
     shrink: str | None = None,
     ps_method: str = "l2",
     frame_gains: bool = True,
+    candidates: tuple[str, ...] | None = None,
+    regions: int = 1,
+    margin: float = 3.0,
 ) -> BRDFModel:
     """Fit a BRDF to K images of one object with known normals, albedo and lights.
 
@@ -395,7 +407,11 @@ def fit_brdf(
     - `mask`: `(H, W)` bool, pixels to learn from (default all; must not be empty).
     - `method`: `"mlp"` (network on intensity, the default as in DESIGN.md), `"mlp_ratio"`
       (network on $I/\\rho$; same held-out error on Yale B, see docs/brdf.md),
-      `"delaunay"` or `"lambertian"` (see the module docstring).
+      `"delaunay"` or `"lambertian"` (see the module docstring), or `"auto"`: the
+      candidates' leave-one-light-out error on the training frames decides, per face region,
+      between Lambert's law and the best candidate (K >= 5; K + 1 fits per candidate; see
+      docs/brdf.md, "Choosing a model"). `model.fit.choice` says what was picked
+      and why.
     - `key`: PRNG key or int seed (`jax.random.key(seed)`) for sampling and initialisation
       (default `jax.random.key(0)`).
     - `n_samples`: random pixel-light samples to train on (paper: ~100,000). Samples that are
@@ -424,6 +440,11 @@ def fit_brdf(
       data justify). Costs K + 1 fits. MLP methods with `lambertian_base=True` only.
     - `ps_method`: the photometric-stereo method for the folds of `shrink="loo"` (use the one
       that gave `normals` and `albedo`).
+    - `candidates`, `regions`, `margin`: `method="auto"` only: the methods to choose among
+      (default every method of `BRDF_METHODS` but `"lambertian"`, `"auto"` and
+      `"delaunay"`), the `regions` x `regions` grid over the
+      mask's bounding box, and the standard errors by which a candidate must beat Lambert's
+      law in a region (chosen leave-one-subject-out on Yale B, docs/brdf.md).
     - `frame_gains`: MLP methods: fit one brightness factor per training frame with the
       network, $I_k = g_k\\, f(\\cdot)$ with $\\prod_k g_k = 1$, so that a flash that fired
       brighter or dimmer in one frame is not learned as reflectance; `relight` renders at
@@ -444,6 +465,24 @@ def fit_brdf(
         raise ValueError("shrink='loo' scales the correction to Lambert's law: it needs "
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
+    if method == "auto":
+        if candidates is None:  # delaunay: a slow reference, worse than Lambert held out
+            candidates = tuple(m for m in BRDF_METHODS
+                               if m not in ("lambertian", "auto", "delaunay"))
+        bad = [m for m in candidates if m not in BRDF_METHODS or m in ("lambertian", "auto")]
+        if bad or not candidates:
+            raise ValueError(f"candidates must be methods of {BRDF_METHODS} other than "
+                             f"'lambertian' and 'auto', got {candidates!r}")
+        if int(regions) < 1:
+            raise ValueError(f"regions must be >= 1, got {regions!r}")
+        options = {"key": key, "n_samples": n_samples, "hidden": hidden, "bound": bound,
+                   "support_deg": support_deg, "min_count": min_count,
+                   "lambertian_base": lambertian_base, "use_xy": use_xy, "solver": solver,
+                   "max_steps": max_steps, "saturation": saturation,
+                   "ps_method": ps_method, "frame_gains": frame_gains}
+        return fit_auto(fit_brdf, relight, images, normals, albedo, lights, mask=mask,
+                        candidates=tuple(candidates), regions=int(regions), margin=float(margin),
+                        ps_method=ps_method, saturation=saturation, options=options)
     if shrink is not None and images.shape[0] < 5:
         raise ValueError(
             f"shrink='loo' needs K >= 5 frames, got {images.shape[0]}: with K-1 = 3 frames per "
@@ -528,20 +567,12 @@ def _loo_shrink(images, lights, mask, ps_method, options):
     by one fold is not evidence that the correction transfers to new lights.
     """
     k = images.shape[0]
-    folds, skipped = [], []
-    for j in range(k):
-        keep = np.array([i for i in range(k) if i != j])
-        if np.linalg.cond(np.asarray(lights[keep], np.float64)) > MAX_LIGHT_CONDITION:
-            skipped.append(j)
-            continue
-        ps = photometric_stereo(images[keep], lights[keep], mask=mask, method=ps_method)
-        model = fit_brdf(images[keep], ps.normals, ps.albedo, lights[keep], mask=mask, **options)
-        full = np.asarray(relight(model, ps.normals, ps.albedo, lights[j]), np.float64)[0]
-        lam = np.asarray(relight(dataclasses.replace(model, bound=0.0), ps.normals, ps.albedo,
-                                 lights[j]), np.float64)[0]
-        obs = np.asarray(images[j], np.float64)
-        ok = mask & np.isfinite(obs) & (obs < options["saturation"]) & (np.asarray(ps.albedo) > 0)
-        folds.append(((obs - lam)[ok], (full - lam)[ok]))
+    options = dict(options)
+    method = options.pop("method")
+    done = lolo_folds(fit_brdf, relight, images, lights, mask, [method], ps_method=ps_method,
+                      saturation=options["saturation"], options=options)
+    folds = [((obs - lam)[ok], (preds[method] - lam)[ok]) for _, obs, ok, lam, preds in done]
+    skipped = sorted(set(range(k)) - {j for j, *_ in done})
     if len(folds) < 2:
         raise ValueError(f"shrink='loo': only {len(folds)} of {k} leave-one-out folds have "
                          "lights spanning 3-D; it needs at least 2")
@@ -627,6 +658,12 @@ def relight(
     lights = _check_lights(lights, normals.dtype)
     if mask is not None and np.shape(mask) != hw:
         raise ValueError(f"mask must have shape (H, W) = {hw}, got {np.shape(mask)}")
+    if model.gate is not None:  # method="auto": Lambert's law outside the gate
+        if model.gate.shape != hw:
+            raise ValueError(f"the model's gate is {model.gate.shape}, normals are {hw}")
+        full, lam = (relight(dataclasses.replace(model, **kw), normals, albedo, lights, mask=mask)
+                     for kw in ({"gate": None}, {"gate": None, "method": "lambertian"}))
+        return lam + model.gate.astype(lam.dtype)[None] * (full - lam)
     if model.method == "delaunay":
         sel = np.ones(hw, bool) if mask is None else np.asarray(mask, bool)
         f = np.asarray(_features(normals, lights), np.float64)[:, sel]  # (K, M, 5)
