@@ -82,6 +82,7 @@ from threadpoolctl import threadpool_limits
 from ..core._random import as_key
 from ..lights._directions import MAX_LIGHT_CONDITION
 from ..ps import photometric_stereo
+from . import _parametric
 from ._features import (
     _angles_elementwise,
     _features,
@@ -97,7 +98,7 @@ __all__ = [
     "relight",
 ]
 
-BRDF_METHODS = ("mlp", "mlp_ratio", "delaunay", "lambertian")
+BRDF_METHODS = ("mlp", "mlp_ratio", "delaunay", "lambertian", *_parametric.PARAMETRIC_METHODS)
 
 
 class BRDFFit(NamedTuple):
@@ -384,6 +385,8 @@ def fit_brdf(
     shrink: str | None = None,
     ps_method: str = "l2",
     frame_gains: bool = True,
+    region: int | None = _parametric.REGION_PX,
+    refine_normals: bool = False,
 ) -> BRDFModel:
     """Fit a BRDF to K images of one object with known normals, albedo and lights.
 
@@ -487,6 +490,16 @@ def fit_brdf(
         pred = rho * jnp.asarray(lin(ang), dtype)
         model = BRDFModel(method, None, **common, interpolator=lin)
         return _with_fit(model, pred, target, 0, True, t0, "interpolates the samples")
+    if method in _parametric.PARAMETRIC_METHODS:
+        params, gains, steps, ok, pred, target = _parametric.fit(
+            images, normals, albedo, lights, mask, usable, method=method, key=key_sample,
+            n_samples=n_samples, solver=solver, max_steps=max_steps, frame_gains=frame_gains,
+            region=region, refine_normals=refine_normals)
+        extra = {"frame_gains": tuple(float(g) for g in np.asarray(gains))} if frame_gains else {}
+        msg = ("converged" if ok else f"stopped at max_steps={max_steps} or failed") + (
+            f"; shape parameters {np.asarray(params.shape).round(4).tolist()}")
+        return _with_fit(BRDFModel(method, params, **common), pred, target, steps, ok, t0, msg,
+                         **extra)
 
     ratio = method == "mlp_ratio"
     params = _init_mlp(key_init, (5, *hidden, 1), dtype)
@@ -633,6 +646,13 @@ def relight(
         ratio = np.zeros((lights.shape[0], *hw))
         ratio[:, sel] = model.interpolator(f[..., :3].reshape(-1, 3)).reshape(f.shape[:2])
         return jnp.asarray(ratio, normals.dtype) * albedo[None]
+    if model.method in _parametric.PARAMETRIC_METHODS:
+        if model.params.specular.shape != hw:
+            raise ValueError(f"normals must be (H, W, 3) = {(*model.params.specular.shape, 3)}"
+                             f" (the grid the parametric model was fitted on), got {(*hw, 3)}")
+        out = _parametric.render(model.method, model.params, normals, albedo, lights)
+        return out if mask is None else jnp.where(jnp.asarray(mask, bool)[None], out,
+                                                  jnp.zeros((), out.dtype))
     # the fit report is a static field of the model: drop it so that models that differ only in
     # their report (every new fit) share one compiled relight
     out = _relight_jit(dataclasses.replace(model, fit=None), normals, albedo, lights)
