@@ -28,7 +28,7 @@ import numpy as np
 import jaxps
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from benchmarks.bench_brdf import OUT, cases, gain_rmse, rmse  # noqa: E402
+from benchmarks.bench_brdf import OUT, cases, gain_rmse, rmse
 
 SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
 METHODS = ("ggx", "blinn_phong", "wrap", "oren_nayar", "wrap_ggx", "oren_nayar_ggx")

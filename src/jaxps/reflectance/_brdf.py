@@ -398,7 +398,12 @@ def fit_brdf(
     - `mask`: `(H, W)` bool, pixels to learn from (default all; must not be empty).
     - `method`: `"mlp"` (network on intensity, the default as in DESIGN.md), `"mlp_ratio"`
       (network on $I/\\rho$; same held-out error on Yale B, see docs/brdf.md),
-      `"delaunay"` or `"lambertian"` (see the module docstring).
+      `"delaunay"` or `"lambertian"` (see the module docstring), or a parametric model,
+      a diffuse term plus a specular lobe that moves with the light (`"ggx"`, `"blinn_phong"`,
+      `"wrap"`, `"oren_nayar"`, `"wrap_ggx"`, `"oren_nayar_ggx"`: diffuse Lambert unless
+      named; docs/brdf.md, "Parametric models"). For those,
+      `key`, `n_samples` (pixels drawn: `n_samples // K`), `solver`, `max_steps`,
+      `saturation`, `frame_gains`, `region` and `refine_normals` apply.
     - `key`: PRNG key or int seed (`jax.random.key(seed)`) for sampling and initialisation
       (default `jax.random.key(0)`).
     - `n_samples`: random pixel-light samples to train on (paper: ~100,000). Samples that are
@@ -432,6 +437,12 @@ def fit_brdf(
       brighter or dimmer in one frame is not learned as reflectance; `relight` renders at
       $g = 1$ and `model.fit.frame_gains` reports them. Default True (Yale B's flashes vary
       by about ±10%, see docs/brdf.md); False is the paper's training.
+
+    - `region`: parametric methods: side in pixels of the square blocks that share one
+      specular albedo (None: one for the whole mask).
+    - `refine_normals`: parametric methods: re-solve each pixel's normal with the fitted lobe
+      (two rounds of normals, then shared parameters); the model keeps the refined normals and
+      `relight` renders with them on the fitted grid.
 
     **Returns:** a `BRDFModel`; `model.fit` is a `BRDFFit` (steps, converged, mse, rmse, R).
 

@@ -22,10 +22,11 @@ Diffuse terms $D$ (the method's first part):
 
 Specular lobes $S$ (the method's second part), evaluated at the half vector
 $h = (l + v) / \\lVert l + v \\rVert$ so that the highlight moves with the light:
-- `ggx`: the microfacet model $D_{GGX}(n \\cdot h; \\alpha)\\, G(\\cdot)\\, F(l \\cdot h) /
-  (4 F_0 \\cos\\theta_r)$ ($\\rho_s$ is then the lobe's strength at normal incidence) (Torrance & Sparrow 1967's form with the GGX distribution and its
-  height-uncorrelated Smith shadowing of Walter et al., EGSR 2007), Schlick's Fresnel (Schlick
-  1994) with $F_0 = 0.028$ (skin's index of refraction, 1.4), one shared roughness
+- `ggx`: the microfacet model $D_{GGX}(n \\cdot h; \\alpha)\\, G\\, F(l \\cdot h) /
+  (4 F_0 \\cos\\theta_r)$, so that $\\rho_s$ is the lobe's strength at normal incidence:
+  Torrance & Sparrow (1967)'s form with the GGX distribution and its Smith shadowing
+  $G = G_1(\\cos\\theta_i) G_1(\\cos\\theta_r)$ (Walter et al., EGSR 2007), Schlick's Fresnel
+  (Schlick 1994) with $F_0 = 0.028$ (skin's index of refraction, 1.4), one shared roughness
   $\\alpha \\in (0.05, 1)$.
 - `blinn_phong`: $\\frac{e + 2}{8 \\pi} (n \\cdot h)^e$ where $\\cos\\theta_i > 0$ (Blinn 1977,
   normalised), one shared exponent $e \\in (1, 500)$.
@@ -35,6 +36,11 @@ Fit: the albedos enter linearly, so for given $\\theta$ and $g$ they are solved 
 both clipped at 0), and Levenberg–Marquardt (optimistix) moves only the few shared parameters,
 bounded through sigmoids (variable projection: Golub & Pereyra 1973). After the solver stops the
 albedos are solved once more on every masked pixel, not only the `n_samples // K` sampled ones.
+
+Joint normals (`refine_normals=True`): L2 photometric stereo bends the normals towards the
+highlight, so the lobe finds little left to explain (issue 16). Each pixel's normal is then
+re-solved with the lobe and the shared parameters fixed (damped Gauss–Newton in two tangent
+coordinates, the diffuse albedo projected out), and the shared parameters re-fitted: two rounds.
 """
 
 from __future__ import annotations
@@ -103,7 +109,7 @@ def _from_bounded(x, name):
 def _terms(diffuse, specular, shape, normals, lights):
     """Diffuse and specular shading `(K, P)` for `(P, 3)` normals, `(K, 3)` lights and the
     bounded `shape` (2,)."""
-    col = lambda a, j: a[:, j][:, None]  # noqa: E731  (K, 1)
+    col = lambda a, j: a[:, j][:, None]
     nx, ny, nz = (normals[:, j][None] for j in range(3))  # (1, P)
     cos_i = col(lights, 0) * nx + col(lights, 1) * ny + col(lights, 2) * nz
     cos_r = jnp.clip(nz, 1e-4, 1)
@@ -115,7 +121,7 @@ def _terms(diffuse, specular, shape, normals, lights):
         d = _shading(cos_i, cos_r, col(lights, 2) - cos_i * cos_r, shape[0] ** 2)
     if specular is None:
         return d, jnp.zeros_like(d)
-    half = lights + jnp.asarray([0, 0, 1], lights.dtype)
+    half = lights + jnp.asarray([[0, 0, 1]], lights.dtype)
     half = half / jnp.linalg.norm(half, axis=1, keepdims=True)
     cos_h = jnp.clip(col(half, 0) * nx + col(half, 1) * ny + col(half, 2) * nz, 0, 1)
     lit = cos_i > 0
@@ -142,12 +148,12 @@ def _albedos(d, s, y, w, region, n_regions):
     diffuse, both clipped at 0."""
     tiny = jnp.asarray(1e-12, d.dtype)
     dd = jnp.maximum(jnp.sum(w * d * d, 0), tiny)
-    proj = lambda x: x - d * (jnp.sum(w * d * x, 0) / dd)  # noqa: E731
+    proj = lambda x: x - d * (jnp.sum(w * d * x, 0) / dd)[None]
     s_perp, y_perp = proj(s), proj(y)
     num = jax.ops.segment_sum(jnp.sum(w * s_perp * y_perp, 0), region, n_regions)
     den = jax.ops.segment_sum(jnp.sum(w * s_perp * s_perp, 0), region, n_regions)
     rho_s = jnp.maximum(num / jnp.maximum(den, tiny), 0)
-    rho_d = jnp.maximum(jnp.sum(w * d * (y - rho_s[region] * s), 0) / dd, 0)
+    rho_d = jnp.maximum(jnp.sum(w * d * (y - rho_s[region][None] * s), 0) / dd, 0)
     return rho_s, rho_d
 
 
@@ -167,7 +173,7 @@ def _predict(p, data, diffuse, specular, n_regions, fit_gains):
     d, s = _terms(diffuse, specular, shape, normals, lights)
     d, s = gains[:, None] * d, gains[:, None] * s
     rho_s, rho_d = _albedos(d, s, y, w, region, n_regions)
-    return rho_d * d + rho_s[region] * s, rho_s, rho_d, shape, gains
+    return rho_d[None] * d + rho_s[region][None] * s, rho_s, rho_d, shape, gains
 
 
 def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples, solver,
@@ -175,10 +181,12 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     """Fit `method` (a key of `PARAMETRIC_METHODS`). `usable`: `(K, H, W)` bool, samples that
     may be fitted. Returns `(ParametricParams, gains (K,), steps, converged, prediction,
     target)`, the last two over the usable samples of every masked pixel."""
+    if region is not None and int(region) < 1:
+        raise ValueError(f"region must be a positive number of pixels or None, got {region}")
     diffuse, specular = PARAMETRIC_METHODS[method]
     k, h, w = images.shape
     dtype = images.dtype
-    size = max(int(region), 1) if region is not None else max(h, w)
+    size = int(region) if region is not None else max(h, w)
     cols = -(-w // size)
     n_regions = cols * -(-h // size)
     yy, xx = np.mgrid[:h, :w]
