@@ -386,7 +386,7 @@ def fit_brdf(
     ps_method: str = "l2",
     frame_gains: bool = True,
     region: int | None = _parametric.REGION_PX,
-    refine_normals: bool = False,
+    refine_normals: bool = True,
 ) -> BRDFModel:
     """Fit a BRDF to K images of one object with known normals, albedo and lights.
 
@@ -442,7 +442,8 @@ def fit_brdf(
       specular albedo (None: one for the whole mask).
     - `refine_normals`: parametric methods: re-solve each pixel's normal with the fitted lobe
       (two rounds of normals, then shared parameters); the model keeps the refined normals and
-      `relight` renders with them on the fitted grid.
+      `relight` renders with them on the fitted grid (its `normals` argument is then unused).
+      Default True: chosen leave-one-subject-out on Yale B (docs/brdf.md).
 
     **Returns:** a `BRDFModel`; `model.fit` is a `BRDFFit` (steps, converged, mse, rmse, R).
 
@@ -502,13 +503,12 @@ def fit_brdf(
         model = BRDFModel(method, None, **common, interpolator=lin)
         return _with_fit(model, pred, target, 0, True, t0, "interpolates the samples")
     if method in _parametric.PARAMETRIC_METHODS:
-        params, gains, steps, ok, pred, target = _parametric.fit(
+        params, gains, steps, ok, msg, pred, target = _parametric.fit(
             images, normals, albedo, lights, mask, usable, method=method, key=key_sample,
             n_samples=n_samples, solver=solver, max_steps=max_steps, frame_gains=frame_gains,
             region=region, refine_normals=refine_normals)
         extra = {"frame_gains": tuple(float(g) for g in np.asarray(gains))} if frame_gains else {}
-        msg = ("converged" if ok else f"stopped at max_steps={max_steps} or failed") + (
-            f"; shape parameters {np.asarray(params.shape).round(4).tolist()}")
+        msg += f"; shape parameters {np.asarray(params.shape).round(4).tolist()}"
         return _with_fit(BRDFModel(method, params, **common), pred, target, steps, ok, t0, msg,
                          **extra)
 
