@@ -1,7 +1,7 @@
 """Parametric reflectance (diffuse term + specular lobe) against Lambert on held-out Yale B lights.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_physics.py \
-        [--subjects ...] [--methods ...] [--regions ...] [--out physics.json]
+        [--subjects ...] [--methods ...] [--regions ...] [--refine 0 1] [--quick]
 
 For each subject (the "cross" training set of bench_brdf.py: lights (0,0), (+-25,0), (0,+-20),
 less frames `check_frames` flags), normals and albedo by L2 photometric stereo on the training
@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+import os
 import pathlib
 import sys
 import time
@@ -101,7 +102,13 @@ def main():
     ap.add_argument("--regions", nargs="+", type=int, default=REGIONS)
     ap.add_argument("--refine", nargs="+", type=int, default=[int(r) for r in REFINE])
     ap.add_argument("--out", default="physics.json")
+    ap.add_argument("--quick", action="store_true",
+                    help="one subject, one configuration, written to physics_quick.json (the "
+                    "stored figures are left as they are); also with JAXPS_BENCH_QUICK set")
     args = ap.parse_args()
+    if args.quick or os.environ.get("JAXPS_BENCH_QUICK"):
+        args.subjects, args.methods, args.regions, args.refine = ["yaleB01"], ["wrap_ggx"], [32], [1]
+        args.out = "physics_quick.json"
     rows = run(args.subjects, args.methods, args.regions, [bool(r) for r in args.refine])
     result = {"rows": rows, "loso": loso(rows) if len(rows) > 1 else None}
     if result["loso"]:
