@@ -107,8 +107,8 @@ def main():
                     "stored figures are left as they are); also with JAXPS_BENCH_QUICK set")
     args = ap.parse_args()
     if args.quick or os.environ.get("JAXPS_BENCH_QUICK"):
-        args.subjects, args.methods, args.regions, args.refine = ["yaleB01"], ["wrap_ggx"], [32], [1]
-        args.out = "physics_quick.json"
+        args.subjects, args.methods, args.regions = ["yaleB01"], ["wrap_ggx"], [32]
+        args.refine, args.out = [1], "physics_quick.json"
     rows = run(args.subjects, args.methods, args.regions, [bool(r) for r in args.refine])
     result = {"rows": rows, "loso": loso(rows) if len(rows) > 1 else None}
     if result["loso"]:
