@@ -132,3 +132,62 @@ def test_bad_input():
     with pytest.raises(ValueError, match="normals"):
         jaxps.relight(model, np.zeros((8, 8, 3), np.float32), np.zeros((8, 8), np.float32),
                       TEST)
+
+
+def half_diff_numpy(n, l):
+    """(θh, θd, φd) of Rusinkiewicz (1998) for one unit normal and light, view (0, 0, 1), by
+    rotating into the half vector's frame."""
+    v = np.array([0.0, 0.0, 1.0])
+    h = (l + v) / np.linalg.norm(l + v)
+    theta_h = np.arccos(np.clip(n @ h, -1, 1))
+    theta_d = np.arccos(np.clip(l @ h, -1, 1))
+    t = n - (n @ h) * h  # the plane of n and h fixes the azimuth's origin
+    t = t / np.linalg.norm(t)
+    b = np.cross(h, t)
+    phi = abs(np.arctan2(l @ b, l @ t))
+    return theta_h, theta_d, phi
+
+
+def test_half_difference_angles_against_numpy():
+    from jaxps.reflectance._parametric import _half_diff
+
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(20, 3)) * [0.4, 0.4, 1] + [0, 0, 1]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    got = np.asarray(_half_diff(jnp.asarray(n, jnp.float32), jnp.asarray(TEST, jnp.float32)))
+    want = np.array([[half_diff_numpy(ni, li) for ni in n] for li in TEST])
+    np.testing.assert_allclose(got, want, atol=2e-3)
+
+
+def test_residual_mlp_on_the_synthetic_face():
+    """The residual network over (θh, θd, φd) on top of `wrap_ggx`: bounded by
+    RESIDUAL_BOUND x the diffuse albedo; it lowers the training error and raises the held-out
+    error (it overfits five lights)."""
+    from jaxps.reflectance._parametric import RESIDUAL_BOUND
+
+    surf, albedo = face(96)
+    m = np.asarray(surf.mask)
+
+    def render(lights):
+        on = np.asarray(jaxps.shading.render_oren_nayar(surf.normals, albedo, lights, 0.4))
+        return np.where(m, on + 0.15 * ggx_numpy(surf.normals, lights, 0.3), 0)
+
+    images = jnp.asarray(render(TRAIN), jnp.float32)
+    truth = render(TEST)
+    ps = jaxps.photometric_stereo(images, TRAIN, mask=m)
+    fits = {name: jaxps.fit_brdf(images, ps.normals, ps.albedo, TRAIN, mask=m, method=name,
+                                 region=None)
+            for name in ("lambertian", "wrap_ggx", "wrap_ggx_residual")}
+    err = {name: float(np.sqrt(np.mean(
+        (np.asarray(jaxps.relight(f, ps.normals, ps.albedo, TEST, mask=m)) - truth)[:, m] ** 2)))
+        for name, f in fits.items()}
+    base, resid = fits["wrap_ggx"], fits["wrap_ggx_residual"]
+    assert resid.params.residual is not None and base.params.residual is None
+    # measured: training RMSE 0.0066 -> 0.0014 with the network, held out 0.0112 -> 0.0136
+    # (Lambert 0.0120): it fits the five lights and does not transfer to the twelve others
+    assert resid.fit.rmse < 0.5 * base.fit.rmse
+    assert err["wrap_ggx"] < 0.95 * err["lambertian"] < err["wrap_ggx_residual"]
+    diff = np.asarray(jaxps.relight(resid, ps.normals, ps.albedo, TEST)) - np.asarray(
+        jaxps.relight(base, ps.normals, ps.albedo, TEST))
+    rho_d = np.asarray(ps.albedo * resid.params.diffuse_ratio)
+    assert np.all(np.abs(diff)[:, m] <= RESIDUAL_BOUND * rho_d[m] + 1e-5)

@@ -39,8 +39,8 @@ ADDED = {
 # `jax.Array | int` (an int seed is accepted); those snapshot entries were rewritten; and
 # `jaxps.cli.reconstruct` gained `obj` and `points` (the OBJ and point cloud on request).
 # Issue 16 (part B): `BRDF_METHODS` gained the parametric models ("wrap", "oren_nayar", "ggx",
-# "blinn_phong", "wrap_ggx", "oren_nayar_ggx") and `fit_brdf` gained `region` and
-# `refine_normals` (their options); those two snapshot entries were rewritten.
+# "blinn_phong", "wrap_ggx", "oren_nayar_ggx", "wrap_ggx_residual") and `fit_brdf` gained
+# `region` and `refine_normals` (their options); those two snapshot entries were rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -53,6 +53,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jax.flatten_util import ravel_pytree
 
 from ..shading._oren_nayar import SIGMA_MAX, _shading
 
@@ -66,7 +67,10 @@ PARAMETRIC_METHODS = {
     "blinn_phong": ("lambert", "blinn_phong"),
     "wrap_ggx": ("wrap", "ggx"),
     "oren_nayar_ggx": ("oren_nayar", "ggx"),
+    "wrap_ggx_residual": ("wrap", "ggx"),  # + a residual MLP over (θh, θd, φd)
 }
+RESIDUAL_HIDDEN = 8  # hidden units of the residual MLP (3-8-1)
+RESIDUAL_BOUND = 0.25  # |correction| <= RESIDUAL_BOUND x the pixel's diffuse albedo
 REGION_PX = 32  # side of the specular albedo's square regions (see docs/brdf.md)
 F0_SKIN = 0.028  # Schlick's F0 for an index of refraction of 1.4
 # Bounds of the shared parameters (sigmoid reparametrisation) and their starting values.
@@ -86,12 +90,16 @@ class ParametricParams(NamedTuple):
       outside the mask).
     - `normals`: `(H, W, 3)` the jointly refined normals (`refine_normals=True`; `relight`
       renders with them instead of its `normals` argument), else None.
+    - `residual`, `box`: the residual MLP's `((W1, b1), (W2, b2))` and the `(2, 3)` training
+      range of (θh, θd, φd) its inputs are clamped to (`"wrap_ggx_residual"`), else None.
     """
 
     shape: jax.Array
     diffuse_ratio: jax.Array
     specular: jax.Array
     normals: jax.Array | None = None
+    residual: tuple | None = None
+    box: jax.Array | None = None
 
 
 def _to_bounded(t, name):
@@ -214,7 +222,6 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     static = (diffuse, specular, n_regions, bool(frame_gains))
     sol = _solve(p0, data_of(train), solver, *static, int(max_steps))
     steps = int(sol.stats["num_steps"])
-    refined = None
     for _ in range(rounds if refine_normals else 0):
         refined = _refine_jit(sol.value, data_of(pix), *static)
         normals = normals.reshape(-1, 3).at[pix].set(refined).reshape(h, w, 3)
@@ -231,7 +238,75 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     target = images.reshape(k, -1)[:, pix]
     ok = bool(sol.result == optx.RESULTS.successful)
     message = "converged" if ok else str(sol.result).split("<", 1)[-1].rstrip(">")
+    if method.endswith("_residual"):
+        data = data_of(train)
+        base, _, rho_d_train, _, _ = _predict_jit(sol.value, data, *static)
+        u = _half_diff(data[0], lights)
+        box = jnp.stack([jnp.min(u, axis=(0, 1)), jnp.max(u, axis=(0, 1))])
+        mlp = _init_residual(key, dtype)
+        flat, unravel = ravel_pytree(mlp)
+        amp = RESIDUAL_BOUND * gains[:, None] * rho_d_train[None]
+        res = _solve_residual(flat, (_scaled(u, box), base, amp, data[2], data[3]), solver,
+                              int(max_steps))
+        steps += int(res.stats["num_steps"])
+        ok = ok and bool(res.result == optx.RESULTS.successful)
+        message += "; residual MLP: " + ("converged" if res.result == optx.RESULTS.successful
+                                         else str(res.result).split("<", 1)[-1].rstrip(">"))
+        params = params._replace(residual=unravel(res.value), box=box)
+        u_all = _half_diff(normals.reshape(-1, 3)[pix], lights)
+        amp_all = RESIDUAL_BOUND * gains[:, None] * rho_d[None]
+        pred = pred + amp_all * jnp.tanh(_mlp(params.residual, _scaled(u_all, box)))
     return params, gains, steps, ok, message, pred[sel], target[sel]
+
+
+def _half_diff(normals, lights):
+    """Rusinkiewicz (1998)'s half/difference angles (θh, θd, φd) `(K, P, 3)` for `(P, 3)`
+    normals and `(K, 3)` lights, view (0, 0, 1): θh between n and h, θd between l and h, φd
+    the azimuth of l about h from the plane of n and h (isotropic, in [0, π])."""
+    half = lights + jnp.asarray([[0, 0, 1]], lights.dtype)
+    half = half / jnp.linalg.norm(half, axis=1, keepdims=True)  # (K, 3)
+    n, l, hv = normals[None], lights[:, None], half[:, None]  # (1, P, 3), (K, 1, 3), (K, 1, 3)
+    cos_h = jnp.sum(n * hv, -1)  # (K, P)
+    cos_d = jnp.sum(l * hv, -1)  # (K, 1)
+    n_perp = n - cos_h[..., None] * hv
+    l_perp = l - cos_d[..., None] * hv
+    dot = jnp.sum(n_perp * l_perp, -1)
+    cross = jnp.linalg.norm(jnp.cross(n_perp, jnp.broadcast_to(l_perp, n_perp.shape)), axis=-1)
+    phi = jnp.arctan2(cross, dot)
+    theta_h = jnp.arccos(jnp.clip(cos_h, -1, 1))
+    theta_d = jnp.broadcast_to(jnp.arccos(jnp.clip(cos_d, -1, 1)), theta_h.shape)
+    return jnp.stack([theta_h, theta_d, phi], -1)
+
+
+def _scaled(u, box):
+    """`u` clamped to the training box and mapped to [-1, 1] per coordinate."""
+    lo, hi = (b.reshape((1,) * (u.ndim - 1) + (3,)) for b in box)
+    return 2 * (jnp.clip(u, lo, hi) - lo) / jnp.maximum(hi - lo, 1e-6) - 1
+
+
+def _init_residual(key, dtype):
+    w1 = jax.random.normal(key, (RESIDUAL_HIDDEN, 3), dtype) / math.sqrt(3)
+    w2 = 1e-2 * jax.random.normal(jax.random.fold_in(key, 1), (1, RESIDUAL_HIDDEN), dtype)
+    return ((w1, jnp.zeros((RESIDUAL_HIDDEN,), dtype)), (w2, jnp.zeros((1,), dtype)))
+
+
+def _mlp(params, z):
+    """`(..., 3)` scaled inputs -> `(...)` outputs of the 3-H-1 tanh network."""
+    (w1, b1), (w2, b2) = params
+    lead = (1,) * (z.ndim - 1)
+    hidden = jnp.tanh(z @ w1.T + b1.reshape(*lead, -1))
+    return (hidden @ w2.T + b2.reshape(*lead, 1))[..., 0]
+
+
+@eqx.filter_jit
+def _solve_residual(flat, data, solver, max_steps):
+    z, base, amp, y, w = data
+    unravel = ravel_pytree(_init_residual(jax.random.key(0), flat.dtype))[1]
+
+    def residuals(p, _):
+        return (w * (base + amp * jnp.tanh(_mlp(unravel(p), z)) - y)).reshape(-1)
+
+    return optx.least_squares(residuals, solver, flat, max_steps=max_steps, throw=False)
 
 
 def _refine(p, data, diffuse, specular, n_regions, fit_gains, steps=8):
@@ -300,4 +375,7 @@ def render(method, params, normals, albedo, lights):
     d, s = _terms(diffuse, specular, params.shape.astype(dtype), normals.reshape(-1, 3), lights)
     rho_d = (albedo * params.diffuse_ratio.astype(dtype)).reshape(1, -1)
     out = rho_d * d + params.specular.astype(dtype).reshape(1, -1) * s
+    if params.residual is not None:
+        z = _scaled(_half_diff(normals.reshape(-1, 3), lights), params.box.astype(dtype))
+        out = out + RESIDUAL_BOUND * rho_d * jnp.tanh(_mlp(params.residual, z))
     return out.reshape(-1, h, w)
