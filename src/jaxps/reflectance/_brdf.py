@@ -401,7 +401,8 @@ def fit_brdf(
       `"delaunay"` or `"lambertian"` (see the module docstring), or a parametric model,
       a diffuse term plus a specular lobe that moves with the light (`"ggx"`, `"blinn_phong"`,
       `"wrap"`, `"oren_nayar"`, `"wrap_ggx"`, `"oren_nayar_ggx"`: diffuse Lambert unless
-      named; docs/brdf.md, "Parametric models"). For those,
+      named; `"wrap_ggx_residual"` adds a bounded MLP over the half/difference angles;
+      docs/brdf.md, "Parametric models"). For those,
       `key`, `n_samples` (pixels drawn: `n_samples // K`), `solver`, `max_steps`,
       `saturation`, `frame_gains`, `region` and `refine_normals` apply.
     - `key`: PRNG key or int seed (`jax.random.key(seed)`) for sampling and initialisation

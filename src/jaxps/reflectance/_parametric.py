@@ -41,6 +41,11 @@ Joint normals (`refine_normals=True`): L2 photometric stereo bends the normals t
 highlight, so the lobe finds little left to explain (issue 16). Each pixel's normal is then
 re-solved with the lobe and the shared parameters fixed (damped Gauss–Newton in two tangent
 coordinates, the diffuse albedo projected out), and the shared parameters re-fitted: two rounds.
+
+`wrap_ggx_residual`: `wrap_ggx` plus $g_k\\, B \\rho_d \\tanh m(\\tilde u)$, a 3-8-1 tanh
+network $m$ over Rusinkiewicz (1998)'s half/difference angles $u = (\\theta_h, \\theta_d,
+\\phi_d)$ clamped to their training range ($B$ = `RESIDUAL_BOUND`), fitted by LM after the
+parametric part with the gains fixed (the issue's "MLP that learns only the residual").
 """
 
 from __future__ import annotations
