@@ -438,7 +438,6 @@ def fit_brdf(
       brighter or dimmer in one frame is not learned as reflectance; `relight` renders at
       $g = 1$ and `model.fit.frame_gains` reports them. Default True (Yale B's flashes vary
       by about ±10%, see docs/brdf.md); False is the paper's training.
-
     - `region`: parametric methods: side in pixels of the square blocks that share one
       specular albedo (None: one for the whole mask).
     - `refine_normals`: parametric methods: re-solve each pixel's normal with the fitted lobe
