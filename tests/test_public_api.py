@@ -44,6 +44,9 @@ ADDED = {
 # Issue 16: `BRDF_METHODS` gained `"auto"` (per-region choice by leave-one-light-out error),
 # `fit_brdf` gained its options `candidates`, `regions`, `margin`, `BRDFFit` the field `choice`
 # and `BRDFModel` the field `gate`; those snapshot entries were rewritten.
+# Issue 16 (part B): `BRDF_METHODS` gained the parametric models ("wrap", "oren_nayar", "ggx",
+# "blinn_phong", "wrap_ggx", "oren_nayar_ggx", "wrap_ggx_residual") and `fit_brdf` gained
+# `region` and `refine_normals` (their options); those two snapshot entries were rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -80,6 +80,9 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
 from ..core._random import as_key
+from ..lights._directions import MAX_LIGHT_CONDITION
+from ..ps import photometric_stereo
+from . import _parametric
 from ._auto import fit_auto, lolo_folds
 from ._features import (
     _angles_elementwise,
@@ -96,7 +99,12 @@ __all__ = [
     "relight",
 ]
 
-BRDF_METHODS = ("mlp", "mlp_ratio", "delaunay", "lambertian", "auto")
+BRDF_METHODS = ("mlp", "mlp_ratio", "delaunay", "lambertian", "auto",
+                *_parametric.PARAMETRIC_METHODS)
+# `fit_brdf(method="auto")`'s default candidates: the ones its settings were chosen with
+# (benchmarks/bench_relight.py). Delaunay is a slow reference, worse than Lambert held out;
+# the parametric models are candidates on request (`candidates=`).
+AUTO_CANDIDATES = ("mlp", "mlp_ratio")
 
 
 class BRDFFit(NamedTuple):
@@ -396,6 +404,8 @@ def fit_brdf(
     candidates: tuple[str, ...] | None = None,
     regions: int = 1,
     margin: float = 3.0,
+    region: int | None = _parametric.REGION_PX,
+    refine_normals: bool = True,
 ) -> BRDFModel:
     """Fit a BRDF to K images of one object with known normals, albedo and lights.
 
@@ -411,7 +421,13 @@ def fit_brdf(
       candidates' leave-one-light-out error on the training frames decides, per face region,
       between Lambert's law and the best candidate (K >= 5; K + 1 fits per candidate; see
       docs/brdf.md, "Choosing a model"). `model.fit.choice` says what was picked
-      and why.
+      and why. Or a parametric model,
+      a diffuse term plus a specular lobe that moves with the light (`"ggx"`, `"blinn_phong"`,
+      `"wrap"`, `"oren_nayar"`, `"wrap_ggx"`, `"oren_nayar_ggx"`: diffuse Lambert unless
+      named; `"wrap_ggx_residual"` adds a bounded MLP over the half/difference angles;
+      docs/brdf.md, "Parametric models"). For those,
+      `key`, `n_samples` (pixels drawn: `n_samples // K`), `solver`, `max_steps`,
+      `saturation`, `frame_gains`, `region` and `refine_normals` apply.
     - `key`: PRNG key or int seed (`jax.random.key(seed)`) for sampling and initialisation
       (default `jax.random.key(0)`).
     - `n_samples`: random pixel-light samples to train on (paper: ~100,000). Samples that are
@@ -441,8 +457,8 @@ def fit_brdf(
     - `ps_method`: the photometric-stereo method for the folds of `shrink="loo"` (use the one
       that gave `normals` and `albedo`).
     - `candidates`, `regions`, `margin`: `method="auto"` only: the methods to choose among
-      (default every method of `BRDF_METHODS` but `"lambertian"`, `"auto"` and
-      `"delaunay"`), the `regions` x `regions` grid over the
+      (default `AUTO_CANDIDATES`, the MLPs; any method of `BRDF_METHODS` but `"lambertian"`
+      and `"auto"` may be given), the `regions` x `regions` grid over the
       mask's bounding box, and the standard errors by which a candidate must beat Lambert's
       law in a region (chosen leave-one-subject-out on Yale B, docs/brdf.md).
     - `frame_gains`: MLP methods: fit one brightness factor per training frame with the
@@ -450,6 +466,12 @@ def fit_brdf(
       brighter or dimmer in one frame is not learned as reflectance; `relight` renders at
       $g = 1$ and `model.fit.frame_gains` reports them. Default True (Yale B's flashes vary
       by about ±10%, see docs/brdf.md); False is the paper's training.
+    - `region`: parametric methods: side in pixels of the square blocks that share one
+      specular albedo (None: one for the whole mask).
+    - `refine_normals`: parametric methods: re-solve each pixel's normal with the fitted lobe
+      (two rounds of normals, then shared parameters); the model keeps the refined normals and
+      `relight` renders with them on the fitted grid (its `normals` argument is then unused).
+      Default True: chosen leave-one-subject-out on Yale B (docs/brdf.md).
 
     **Returns:** a `BRDFModel`; `model.fit` is a `BRDFFit` (steps, converged, mse, rmse, R).
 
@@ -466,9 +488,8 @@ def fit_brdf(
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
     if method == "auto":
-        if candidates is None:  # delaunay: a slow reference, worse than Lambert held out
-            candidates = tuple(m for m in BRDF_METHODS
-                               if m not in ("lambertian", "auto", "delaunay"))
+        if candidates is None:
+            candidates = AUTO_CANDIDATES
         bad = [m for m in candidates if m not in BRDF_METHODS or m in ("lambertian", "auto")]
         if bad or not candidates:
             raise ValueError(f"candidates must be methods of {BRDF_METHODS} other than "
@@ -526,6 +547,15 @@ def fit_brdf(
         pred = rho * jnp.asarray(lin(ang), dtype)
         model = BRDFModel(method, None, **common, interpolator=lin)
         return _with_fit(model, pred, target, 0, True, t0, "interpolates the samples")
+    if method in _parametric.PARAMETRIC_METHODS:
+        params, gains, steps, ok, msg, pred, target = _parametric.fit(
+            images, normals, albedo, lights, mask, usable, method=method, key=key_sample,
+            n_samples=n_samples, solver=solver, max_steps=max_steps, frame_gains=frame_gains,
+            region=region, refine_normals=refine_normals)
+        extra = {"frame_gains": tuple(float(g) for g in np.asarray(gains))} if frame_gains else {}
+        msg += f"; shape parameters {np.asarray(params.shape).round(4).tolist()}"
+        return _with_fit(BRDFModel(method, params, **common), pred, target, steps, ok, t0, msg,
+                         **extra)
 
     ratio = method == "mlp_ratio"
     params = _init_mlp(key_init, (5, *hidden, 1), dtype)
@@ -670,6 +700,13 @@ def relight(
         ratio = np.zeros((lights.shape[0], *hw))
         ratio[:, sel] = model.interpolator(f[..., :3].reshape(-1, 3)).reshape(f.shape[:2])
         return jnp.asarray(ratio, normals.dtype) * albedo[None]
+    if model.method in _parametric.PARAMETRIC_METHODS:
+        if model.params.specular.shape != hw:
+            raise ValueError(f"normals must be (H, W, 3) = {(*model.params.specular.shape, 3)}"
+                             f" (the grid the parametric model was fitted on), got {(*hw, 3)}")
+        out = _parametric.render(model.method, model.params, normals, albedo, lights)
+        return out if mask is None else jnp.where(jnp.asarray(mask, bool)[None], out,
+                                                  jnp.zeros((), out.dtype))
     # the fit report is a static field of the model: drop it so that models that differ only in
     # their report (every new fit) share one compiled relight
     out = _relight_jit(dataclasses.replace(model, fit=None), normals, albedo, lights)

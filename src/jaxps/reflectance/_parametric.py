@@ -1,0 +1,386 @@
+"""Parametric reflectance from a few lights: a diffuse term and a specular lobe that follows the
+light, fitted by variable projection.
+
+Per pixel $p$ and training frame $k$ the model is
+
+$$ I_{pk} = g_k \\left( \\rho_{d,p}\\, D(n_p, l_k; \\theta) + \\rho_{s,r(p)}\\, S(n_p, l_k; \\theta)
+\\right), \\qquad v = (0, 0, 1), $$
+
+with one diffuse albedo $\\rho_d$ per pixel, one specular albedo $\\rho_s$ per *region* $r(p)$
+(square blocks of `region` pixels: five samples per pixel overfit two free albedos, issue 16),
+shared shape parameters $\\theta$ and, optionally, one brightness factor $g_k$ per frame
+($\\prod_k g_k = 1$; `relight` renders at $g = 1$).
+
+Diffuse terms $D$ (the method's first part):
+- Lambert: $\\max(0, \\cos\\theta_i)$.
+- `wrap`: wrap lighting $\\max(0, (\\cos\\theta_i + w) / (1 + w))$, a cheap stand-in for the
+  subsurface scattering that softens the terminator on skin (Green, "Real-time approximations to
+  subsurface scattering", GPU Gems 2004; Jimenez et al., "Separable subsurface scattering", 2015),
+  with one shared $w \\in (0, 1)$.
+- `oren_nayar`: Oren & Nayar (SIGGRAPH 1994), qualitative model, one shared $\\sigma \\in (0, 1)$
+  rad (`jaxps.shading`'s implementation).
+
+Specular lobes $S$ (the method's second part), evaluated at the half vector
+$h = (l + v) / \\lVert l + v \\rVert$ so that the highlight moves with the light:
+- `ggx`: the microfacet model $D_{GGX}(n \\cdot h; \\alpha)\\, G\\, F(l \\cdot h) /
+  (4 F_0 \\cos\\theta_r)$, so that $\\rho_s$ is the lobe's strength at normal incidence:
+  Torrance & Sparrow (1967)'s form with the GGX distribution and its Smith shadowing
+  $G = G_1(\\cos\\theta_i) G_1(\\cos\\theta_r)$ (Walter et al., EGSR 2007), Schlick's Fresnel
+  (Schlick 1994) with $F_0 = 0.028$ (skin's index of refraction, 1.4), one shared roughness
+  $\\alpha \\in (0.05, 1)$.
+- `blinn_phong`: $\\frac{e + 2}{8 \\pi} (n \\cdot h)^e$ where $\\cos\\theta_i > 0$ (Blinn 1977,
+  normalised), one shared exponent $e \\in (1, 500)$.
+
+Fit: the albedos enter linearly, so for given $\\theta$ and $g$ they are solved in closed form
+(per region, $\\rho_s$ from the residuals with $\\rho_d$ projected out; then $\\rho_d$ per pixel;
+both clipped at 0), and Levenberg–Marquardt (optimistix) moves only the few shared parameters,
+bounded through sigmoids (variable projection: Golub & Pereyra 1973). After the solver stops the
+albedos are solved once more on every masked pixel, not only the `n_samples // K` sampled ones.
+
+Joint normals (`refine_normals=True`): L2 photometric stereo bends the normals towards the
+highlight, so the lobe finds little left to explain (issue 16). Each pixel's normal is then
+re-solved with the lobe and the shared parameters fixed (damped Gauss–Newton in two tangent
+coordinates, the diffuse albedo projected out), and the shared parameters re-fitted: two rounds.
+
+`wrap_ggx_residual`: `wrap_ggx` plus $g_k\\, B \\rho_d \\tanh m(\\tilde u)$, a 3-8-1 tanh
+network $m$ over Rusinkiewicz (1998)'s half/difference angles $u = (\\theta_h, \\theta_d,
+\\phi_d)$ clamped to their training range ($B$ = `RESIDUAL_BOUND`), fitted by LM after the
+parametric part with the gains fixed (the issue's "MLP that learns only the residual").
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jax.flatten_util import ravel_pytree
+
+from ..shading._oren_nayar import SIGMA_MAX, _shading
+
+__all__ = ["PARAMETRIC_METHODS"]
+
+# method -> (diffuse term, specular lobe)
+PARAMETRIC_METHODS = {
+    "wrap": ("wrap", None),
+    "oren_nayar": ("oren_nayar", None),
+    "ggx": ("lambert", "ggx"),
+    "blinn_phong": ("lambert", "blinn_phong"),
+    "wrap_ggx": ("wrap", "ggx"),
+    "oren_nayar_ggx": ("oren_nayar", "ggx"),
+    "wrap_ggx_residual": ("wrap", "ggx"),  # + a residual MLP over (θh, θd, φd)
+}
+RESIDUAL_HIDDEN = 8  # hidden units of the residual MLP (3-8-1)
+RESIDUAL_BOUND = 0.25  # |correction| <= RESIDUAL_BOUND x the pixel's diffuse albedo
+REGION_PX = 32  # side of the specular albedo's square regions (see docs/brdf.md)
+F0_SKIN = 0.028  # Schlick's F0 for an index of refraction of 1.4
+# Bounds of the shared parameters (sigmoid reparametrisation) and their starting values.
+_BOUNDS = {"ggx": (0.05, 1.0), "blinn_phong": (1.0, 500.0), "wrap": (0.0, 1.0),
+           "oren_nayar": (0.0, SIGMA_MAX)}
+_START = {"ggx": 0.3, "blinn_phong": 20.0, "wrap": 0.2, "oren_nayar": 0.3}
+
+
+class ParametricParams(NamedTuple):
+    """The fitted parameters of a parametric method (`BRDFModel.params`).
+
+    - `shape`: `(2,)` the diffuse term's parameter ($w$ or $\\sigma$; 0 for Lambert) and the
+      lobe's ($\\alpha$ or $e$; 0 without a lobe).
+    - `diffuse_ratio`: `(H, W)` $\\rho_d / \\rho$, the fitted diffuse albedo over the albedo the
+      model was fitted with (1 outside the mask), so `relight` takes the same albedo map.
+    - `specular`: `(H, W)` $\\rho_s$ in the images' units (the pixel's region's value; 0
+      outside the mask).
+    - `normals`: `(H, W, 3)` the jointly refined normals (`refine_normals=True`; `relight`
+      renders with them instead of its `normals` argument), else None.
+    - `residual`, `box`: the residual MLP's `((W1, b1), (W2, b2))` and the `(2, 3)` training
+      range of (θh, θd, φd) its inputs are clamped to (`"wrap_ggx_residual"`), else None.
+    """
+
+    shape: jax.Array
+    diffuse_ratio: jax.Array
+    specular: jax.Array
+    normals: jax.Array | None = None
+    residual: tuple | None = None
+    box: jax.Array | None = None
+
+
+def _to_bounded(t, name):
+    lo, hi = _BOUNDS[name]
+    return lo + (hi - lo) * jax.nn.sigmoid(t)
+
+
+def _from_bounded(x, name):
+    lo, hi = _BOUNDS[name]
+    u = (x - lo) / (hi - lo)
+    return math.log(u / (1 - u))
+
+
+def _terms(diffuse, specular, shape, normals, lights):
+    """Diffuse and specular shading `(K, P)` for `(P, 3)` normals, `(K, 3)` lights and the
+    bounded `shape` (2,)."""
+    col = lambda a, j: a[:, j][:, None]
+    nx, ny, nz = (normals[:, j][None] for j in range(3))  # (1, P)
+    cos_i = col(lights, 0) * nx + col(lights, 1) * ny + col(lights, 2) * nz
+    cos_r = jnp.clip(nz, 1e-4, 1)
+    if diffuse == "lambert":
+        d = jnp.maximum(cos_i, 0)
+    elif diffuse == "wrap":
+        d = jnp.maximum((cos_i + shape[0]) / (1 + shape[0]), 0)
+    else:
+        d = _shading(cos_i, cos_r, col(lights, 2) - cos_i * cos_r, shape[0] ** 2)
+    if specular is None:
+        return d, jnp.zeros_like(d)
+    half = lights + jnp.asarray([[0, 0, 1]], lights.dtype)
+    half = half / jnp.linalg.norm(half, axis=1, keepdims=True)
+    cos_h = jnp.clip(col(half, 0) * nx + col(half, 1) * ny + col(half, 2) * nz, 0, 1)
+    lit = cos_i > 0
+    if specular == "blinn_phong":
+        e = shape[1]
+        s = (e + 2) / (8 * math.pi) * jnp.exp(e * jnp.log(jnp.maximum(cos_h, 1e-12)))
+        return d, jnp.where(lit, s, 0)
+    a2 = shape[1] ** 2
+    ndf = a2 / (math.pi * (cos_h**2 * (a2 - 1) + 1) ** 2)
+
+    def g1(c):
+        return 2 * c / (c + jnp.sqrt(a2 + (1 - a2) * c**2))
+
+    ci = jnp.clip(cos_i, 1e-4, 1)
+    cos_d = jnp.sum(lights * half, axis=1, keepdims=True)  # l.h, (K, 1)
+    fresnel = 1 + (1 / F0_SKIN - 1) * (1 - cos_d) ** 5  # Schlick's F / F0
+    s = ndf * g1(ci) * g1(cos_r) * fresnel / (4 * cos_r)
+    return d, jnp.where(lit, s, 0)
+
+
+def _albedos(d, s, y, w, region, n_regions):
+    """Closed-form albedos for `(K, P)` shading `d`, `s`, data `y` and 0/1 weights `w`:
+    `(n_regions,)` specular (with the per-pixel diffuse albedo projected out) and `(P,)`
+    diffuse, both clipped at 0."""
+    tiny = jnp.asarray(1e-12, d.dtype)
+    dd = jnp.maximum(jnp.sum(w * d * d, 0), tiny)
+    proj = lambda x: x - d * (jnp.sum(w * d * x, 0) / dd)[None]
+    s_perp, y_perp = proj(s), proj(y)
+    num = jax.ops.segment_sum(jnp.sum(w * s_perp * y_perp, 0), region, n_regions)
+    den = jax.ops.segment_sum(jnp.sum(w * s_perp * s_perp, 0), region, n_regions)
+    rho_s = jnp.maximum(num / jnp.maximum(den, tiny), 0)
+    rho_d = jnp.maximum(jnp.sum(w * d * (y - rho_s[region][None] * s), 0) / dd, 0)
+    return rho_s, rho_d
+
+
+def _unpack(p, diffuse, specular, k, fit_gains):
+    dtype = p.dtype
+    shape = jnp.stack([
+        _to_bounded(p[0], diffuse) if diffuse != "lambert" else jnp.zeros((), dtype),
+        _to_bounded(p[1], specular) if specular is not None else jnp.zeros((), dtype)])
+    gains = jnp.exp(p[2:] - jnp.mean(p[2:])) if fit_gains else jnp.ones((k,), dtype)
+    return shape, gains
+
+
+def _predict(p, data, diffuse, specular, n_regions, fit_gains):
+    """`(K, P)` prediction and the albedos for flat parameters `p`."""
+    normals, lights, y, w, region = data
+    shape, gains = _unpack(p, diffuse, specular, lights.shape[0], fit_gains)
+    d, s = _terms(diffuse, specular, shape, normals, lights)
+    d, s = gains[:, None] * d, gains[:, None] * s
+    rho_s, rho_d = _albedos(d, s, y, w, region, n_regions)
+    return rho_d[None] * d + rho_s[region][None] * s, rho_s, rho_d, shape, gains
+
+
+def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples, solver,
+         max_steps, frame_gains, region, refine_normals=False, rounds=2):
+    """Fit `method` (a key of `PARAMETRIC_METHODS`). `usable`: `(K, H, W)` bool, samples that
+    may be fitted. Returns `(ParametricParams, gains (K,), steps, converged, the solver's
+    message, prediction, target)`, the last two over the usable samples of every masked
+    pixel; steps are summed over the rounds, converged and the message are the last round's."""
+    if region is not None and int(region) < 1:
+        raise ValueError(f"region must be a positive number of pixels or None, got {region}")
+    diffuse, specular = PARAMETRIC_METHODS[method]
+    k, h, w = images.shape
+    dtype = images.dtype
+    size = int(region) if region is not None else max(h, w)
+    cols = -(-w // size)
+    n_regions = cols * -(-h // size)
+    yy, xx = np.mgrid[:h, :w]
+    region_map = (yy // size) * cols + xx // size
+    pix = np.flatnonzero(np.asarray(mask).reshape(-1) & np.asarray(usable).any(0).reshape(-1))
+
+    def data_of(sel):
+        return (normals.reshape(-1, 3)[sel], lights, images.reshape(k, -1)[:, sel],
+                jnp.asarray(np.asarray(usable).reshape(k, -1)[:, sel], dtype),
+                jnp.asarray(region_map.reshape(-1)[sel], jnp.int32))
+
+    train = pix
+    if pix.size * k > n_samples:
+        pick = np.asarray(jax.random.choice(key, pix.size, (max(n_samples // k, 1),),
+                                            replace=False))
+        train = np.sort(pix[pick])
+    p0 = jnp.concatenate([
+        jnp.asarray([_from_bounded(_START[diffuse], diffuse) if diffuse != "lambert" else 0.0,
+                     _from_bounded(_START[specular], specular) if specular else 0.0], dtype),
+        jnp.zeros((k,), dtype)])
+    if solver is None:
+        # QR (the default), not Cholesky of the normal equations: the centred log-gains and an
+        # unused shape parameter leave J rank-deficient, and float32 Cholesky then failed
+        solver = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-6)
+    static = (diffuse, specular, n_regions, bool(frame_gains))
+    sol = _solve(p0, data_of(train), solver, *static, int(max_steps))
+    steps = int(sol.stats["num_steps"])
+    for _ in range(rounds if refine_normals else 0):
+        refined = _refine_jit(sol.value, data_of(pix), *static)
+        normals = normals.reshape(-1, 3).at[pix].set(refined).reshape(h, w, 3)
+        sol = _solve(sol.value, data_of(train), solver, *static, int(max_steps))
+        steps += int(sol.stats["num_steps"])
+    pred, rho_s, rho_d, shape, gains = _predict_jit(sol.value, data_of(pix), *static)
+    alb = albedo.reshape(-1)[pix]
+    ratio = jnp.ones((h * w,), dtype).at[pix].set(
+        jnp.where(alb > 0, rho_d / jnp.where(alb > 0, alb, 1), 1))
+    spec = jnp.zeros((h * w,), dtype).at[pix].set(rho_s[region_map.reshape(-1)[pix]])
+    params = ParametricParams(shape, ratio.reshape(h, w), spec.reshape(h, w),
+                              normals if refine_normals else None)
+    sel = np.asarray(usable).reshape(k, -1)[:, pix]
+    target = images.reshape(k, -1)[:, pix]
+    ok = bool(sol.result == optx.RESULTS.successful)
+    message = "converged" if ok else str(sol.result).split("<", 1)[-1].rstrip(">")
+    if method.endswith("_residual"):
+        data = data_of(train)
+        base, _, rho_d_train, _, _ = _predict_jit(sol.value, data, *static)
+        u = _half_diff(data[0], lights)
+        box = jnp.stack([jnp.min(u, axis=(0, 1)), jnp.max(u, axis=(0, 1))])
+        mlp = _init_residual(key, dtype)
+        flat, unravel = ravel_pytree(mlp)
+        amp = RESIDUAL_BOUND * gains[:, None] * rho_d_train[None]
+        res = _solve_residual(flat, (_scaled(u, box), base, amp, data[2], data[3]), solver,
+                              int(max_steps))
+        steps += int(res.stats["num_steps"])
+        ok = ok and bool(res.result == optx.RESULTS.successful)
+        message += "; residual MLP: " + ("converged" if res.result == optx.RESULTS.successful
+                                         else str(res.result).split("<", 1)[-1].rstrip(">"))
+        params = params._replace(residual=unravel(res.value), box=box)
+        u_all = _half_diff(normals.reshape(-1, 3)[pix], lights)
+        amp_all = RESIDUAL_BOUND * gains[:, None] * rho_d[None]
+        pred = pred + amp_all * jnp.tanh(_mlp(params.residual, _scaled(u_all, box)))
+    return params, gains, steps, ok, message, pred[sel], target[sel]
+
+
+def _half_diff(normals, lights):
+    """Rusinkiewicz (1998)'s half/difference angles (θh, θd, φd) `(K, P, 3)` for `(P, 3)`
+    normals and `(K, 3)` lights, view (0, 0, 1): θh between n and h, θd between l and h, φd
+    the azimuth of l about h from the plane of n and h (isotropic, in [0, π])."""
+    half = lights + jnp.asarray([[0, 0, 1]], lights.dtype)
+    half = half / jnp.linalg.norm(half, axis=1, keepdims=True)  # (K, 3)
+    n, l, hv = normals[None], lights[:, None], half[:, None]  # (1, P, 3), (K, 1, 3), (K, 1, 3)
+    cos_h = jnp.sum(n * hv, -1)  # (K, P)
+    cos_d = jnp.sum(l * hv, -1)  # (K, 1)
+    n_perp = n - cos_h[..., None] * hv
+    l_perp = l - cos_d[..., None] * hv
+    dot = jnp.sum(n_perp * l_perp, -1)
+    cross = jnp.linalg.norm(jnp.cross(n_perp, jnp.broadcast_to(l_perp, n_perp.shape)), axis=-1)
+    phi = jnp.arctan2(cross, dot)
+    theta_h = jnp.arccos(jnp.clip(cos_h, -1, 1))
+    theta_d = jnp.broadcast_to(jnp.arccos(jnp.clip(cos_d, -1, 1)), theta_h.shape)
+    return jnp.stack([theta_h, theta_d, phi], -1)
+
+
+def _scaled(u, box):
+    """`u` clamped to the training box and mapped to [-1, 1] per coordinate."""
+    lo, hi = (b.reshape((1,) * (u.ndim - 1) + (3,)) for b in box)
+    return 2 * (jnp.clip(u, lo, hi) - lo) / jnp.maximum(hi - lo, 1e-6) - 1
+
+
+def _init_residual(key, dtype):
+    w1 = jax.random.normal(key, (RESIDUAL_HIDDEN, 3), dtype) / math.sqrt(3)
+    w2 = 1e-2 * jax.random.normal(jax.random.fold_in(key, 1), (1, RESIDUAL_HIDDEN), dtype)
+    return ((w1, jnp.zeros((RESIDUAL_HIDDEN,), dtype)), (w2, jnp.zeros((1,), dtype)))
+
+
+def _mlp(params, z):
+    """`(..., 3)` scaled inputs -> `(...)` outputs of the 3-H-1 tanh network."""
+    (w1, b1), (w2, b2) = params
+    lead = (1,) * (z.ndim - 1)
+    hidden = jnp.tanh(z @ w1.T + b1.reshape(*lead, -1))
+    return (hidden @ w2.T + b2.reshape(*lead, 1))[..., 0]
+
+
+@eqx.filter_jit
+def _solve_residual(flat, data, solver, max_steps):
+    z, base, amp, y, w = data
+    unravel = ravel_pytree(_init_residual(jax.random.key(0), flat.dtype))[1]
+
+    def residuals(p, _):
+        return (w * (base + amp * jnp.tanh(_mlp(unravel(p), z)) - y)).reshape(-1)
+
+    return optx.least_squares(residuals, solver, flat, max_steps=max_steps, throw=False)
+
+
+def _refine(p, data, diffuse, specular, n_regions, fit_gains, steps=8):
+    """Per-pixel normals re-solved with the shared parameters `p` and the regions' specular
+    albedos fixed (the diffuse albedo projected out): damped Gauss–Newton on
+    $n = (n_0 + a e_x + b e_y) / \\lVert\\cdot\\rVert$, a step kept only where it lowers the
+    pixel's squared error. Returns `(P, 3)` unit normals."""
+    normals, lights, y, w, region = data
+    rho_s = _predict(p, data, diffuse, specular, n_regions, fit_gains)[1][region]
+    shape, gains = _unpack(p, diffuse, specular, lights.shape[0], fit_gains)
+
+    def normal(n0, ab):
+        n = n0 + jnp.stack([ab[0], ab[1], jnp.zeros((), ab.dtype)])
+        return n / jnp.linalg.norm(n)
+
+    def resid(ab, n0, yp, wp, rs):
+        d, s = _terms(diffuse, specular, shape, normal(n0, ab)[None], lights)
+        d, s = (gains[:, None] * d)[:, 0], (gains[:, None] * s)[:, 0]
+        rd = jnp.maximum(jnp.sum(wp * d * (yp - rs * s)) / jnp.maximum(jnp.sum(wp * d * d),
+                                                                      1e-12), 0)
+        return wp * (yp - rd * d - rs * s)
+
+    def one(n0, yp, wp, rs):
+        ab = jnp.zeros((2,), n0.dtype)
+        lam = jnp.asarray(1e-3, n0.dtype)
+        for _ in range(steps):
+            r = resid(ab, n0, yp, wp, rs)
+            jac = jax.jacfwd(resid)(ab, n0, yp, wp, rs)
+            a = jac.T @ jac
+            a = a + lam * jnp.diag(jnp.diag(a)) + 1e-9 * jnp.eye(2, dtype=a.dtype)
+            step = -jnp.linalg.solve(a, jac.T @ r)
+            step = step * jnp.minimum(1, 0.2 / jnp.maximum(jnp.linalg.norm(step), 1e-12))
+            better = jnp.sum(resid(ab + step, n0, yp, wp, rs) ** 2) < jnp.sum(r**2)
+            ab = jnp.where(better, ab + step, ab)
+            lam = jnp.where(better, lam * 0.3, lam * 10)
+        return normal(n0, ab)
+
+    return jax.vmap(one, in_axes=(0, 1, 1, 0))(normals, y, w, rho_s)
+
+
+_refine_jit = jax.jit(_refine, static_argnames=("diffuse", "specular", "n_regions", "fit_gains"))
+
+
+@eqx.filter_jit
+def _solve(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps):
+    def residuals(p, data):
+        w = data[3]
+        return (w * (_predict(p, data, diffuse, specular, n_regions, fit_gains)[0] - data[2])
+                ).reshape(-1)
+
+    return optx.least_squares(residuals, solver, p0, args=data, max_steps=max_steps, throw=False)
+
+
+_predict_jit = jax.jit(_predict, static_argnames=("diffuse", "specular", "n_regions",
+                                                   "fit_gains"))
+
+
+@jax.jit(static_argnames="method")
+def render(method, params, normals, albedo, lights):
+    """`(K, H, W)` images of a fitted parametric `method` at unit frame gains."""
+    diffuse, specular = PARAMETRIC_METHODS[method]
+    h, w, _ = normals.shape
+    dtype = normals.dtype
+    if params.normals is not None:
+        normals = params.normals.astype(dtype)
+    d, s = _terms(diffuse, specular, params.shape.astype(dtype), normals.reshape(-1, 3), lights)
+    rho_d = (albedo * params.diffuse_ratio.astype(dtype)).reshape(1, -1)
+    out = rho_d * d + params.specular.astype(dtype).reshape(1, -1) * s
+    if params.residual is not None:
+        z = _scaled(_half_diff(normals.reshape(-1, 3), lights), params.box.astype(dtype))
+        out = out + RESIDUAL_BOUND * rho_d * jnp.tanh(_mlp(params.residual, z))
+    return out.reshape(-1, h, w)

@@ -1,0 +1,193 @@
+"""Parametric reflectance (`fit_brdf(method="ggx" | "wrap_ggx" | ...)`): known lobes and wrap
+recovered from scenes rendered in numpy, frame gains, and the issue-16 synthetic target (a face
+with Oren–Nayar sigma = 0.4 and a GGX lobe, five scanner lights, twelve held-out lights)."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxps
+
+TRAIN = jaxps.lights_from_angles([0, 25, -25, 0, 0], [0, 0, 0, 20, -20])
+# twelve other lights within 35 degrees of the view axis
+TEST = jaxps.lights_from_angles([10, -10, 0, 0, 30, -30, 15, -15, 15, -15, 5, -32],
+                                [0, 0, 10, -10, 10, -10, 25, 25, -25, -25, 30, -5])
+
+
+def face(h=96):
+    surf = jaxps.synthetic.face_like(h)
+    hh, ww = surf.mask.shape
+    yy, xx = np.mgrid[:hh, :ww]
+    albedo = np.where(surf.mask, 0.55 + 0.2 * np.sin(xx / 9.0) * np.cos(yy / 13.0), 0)
+    return surf, albedo
+
+
+def ggx_numpy(normals, lights, alpha, f0=0.028):
+    """GGX (Walter et al. 2007) with Smith shadowing and Schlick's Fresnel over F0, / (4 cos_r),
+    zero where n.l <= 0: `(K, H, W)`."""
+    n = np.asarray(normals, np.float64)
+    out = []
+    for l in np.asarray(lights, np.float64):
+        l = l / np.linalg.norm(l)
+        hv = (l + [0, 0, 1]) / np.linalg.norm(l + [0, 0, 1])
+        ci, cr, ch = n @ l, np.clip(n[..., 2], 1e-4, 1), np.clip(n @ hv, 0, 1)
+        d = alpha**2 / (np.pi * (ch**2 * (alpha**2 - 1) + 1) ** 2)
+
+        def g1(c):
+            return 2 * c / (c + np.sqrt(alpha**2 + (1 - alpha**2) * c**2))
+
+        f = 1 + (1 / f0 - 1) * (1 - l @ hv) ** 5
+        out.append(np.where(ci > 0, d * g1(np.clip(ci, 1e-4, 1)) * g1(cr) * f / (4 * cr), 0))
+    return np.stack(out)
+
+
+def wrap_numpy(normals, lights, w):
+    ci = np.einsum("kc,hwc->khw", np.asarray(lights, np.float64), np.asarray(normals, np.float64))
+    return np.maximum((ci + w) / (1 + w), 0)
+
+
+def test_wrap_ggx_recovers_known_shape_and_albedos_on_true_normals():
+    surf, albedo = face()
+    m = np.asarray(surf.mask)
+
+    def render(lights):
+        return np.where(m, albedo * wrap_numpy(surf.normals, lights, 0.3)
+                        + 0.15 * ggx_numpy(surf.normals, lights, 0.3), 0)
+
+    images = jnp.asarray(render(TRAIN), jnp.float32)
+    model = jaxps.fit_brdf(images, surf.normals, albedo, TRAIN, mask=m, method="wrap_ggx",
+                           region=None, frame_gains=False, max_steps=60, refine_normals=False)
+    assert model.fit.converged
+    np.testing.assert_allclose(np.asarray(model.params.shape), [0.3, 0.3], atol=2e-3)
+    np.testing.assert_allclose(np.asarray(model.params.specular)[m], 0.15, atol=2e-3)
+    np.testing.assert_allclose(np.asarray(model.params.diffuse_ratio)[m & (albedo > 0)], 1,
+                               atol=5e-3)
+    pred = np.asarray(jaxps.relight(model, surf.normals, albedo, TEST, mask=m))
+    assert pred.dtype == np.float32
+    assert np.max(np.abs(pred - render(TEST))[:, m]) < 5e-3
+    assert model.fit.rmse < 1e-3
+
+
+def test_blinn_phong_exponent_and_frame_gains_recovered():
+    surf, albedo = face()
+    m = np.asarray(surf.mask)
+    n = np.asarray(surf.normals, np.float64)
+    ci = np.einsum("kc,hwc->khw", TRAIN, n)
+    half = (TRAIN + [0, 0, 1]) / np.linalg.norm(TRAIN + [0, 0, 1], axis=1, keepdims=True)
+    ch = np.clip(np.einsum("kc,hwc->khw", half, n), 0, 1)
+    lobe = np.where(ci > 0, 22 / (8 * np.pi) * ch**20, 0)
+    gains = np.array([1.1, 0.95, 1.0, 0.9, 1.05])
+    gains = gains / np.exp(np.mean(np.log(gains)))
+    images = gains[:, None, None] * np.where(m, albedo * np.maximum(ci, 0) + 0.1 * lobe, 0)
+    model = jaxps.fit_brdf(jnp.asarray(images, jnp.float32), surf.normals, albedo, TRAIN,
+                           mask=m, method="blinn_phong", region=None, max_steps=60,
+                           refine_normals=False)
+    assert model.fit.converged
+    assert abs(float(model.params.shape[1]) - 20) < 0.2
+    np.testing.assert_allclose(model.fit.frame_gains, gains, atol=1e-3)
+    np.testing.assert_allclose(np.asarray(model.params.specular)[m], 0.1, atol=1e-3)
+
+
+def test_synthetic_face_held_out_below_lambert():
+    """Issue 16's synthetic target: normals and albedo from L2 photometric stereo on the five
+    training frames (they absorb the highlight), held-out RMSE at most 0.9x Lambert's."""
+    surf, albedo = face(128)
+    m = np.asarray(surf.mask)
+
+    def render(lights):
+        on = np.asarray(jaxps.shading.render_oren_nayar(surf.normals, albedo, lights, 0.4))
+        return np.where(m, on + 0.15 * ggx_numpy(surf.normals, lights, 0.3), 0)
+
+    images = jnp.asarray(render(TRAIN), jnp.float32)
+    truth = render(TEST)
+    ps = jaxps.photometric_stereo(images, TRAIN, mask=m)
+
+    def err(model):
+        pred = np.asarray(jaxps.relight(model, ps.normals, ps.albedo, TEST, mask=m))
+        return float(np.sqrt(np.mean((pred - truth)[:, m] ** 2)))
+
+    lam = err(jaxps.fit_brdf(images, ps.normals, ps.albedo, TRAIN, mask=m, method="lambertian"))
+    fixed = err(jaxps.fit_brdf(images, ps.normals, ps.albedo, TRAIN, mask=m,
+                               method="oren_nayar_ggx", region=None, refine_normals=False))
+    model = jaxps.fit_brdf(images, ps.normals, ps.albedo, TRAIN, mask=m, method="oren_nayar_ggx",
+                           region=None)
+    joint = err(model)
+    # measured: Lambert 0.0118, the lobe on the L2 normals 0.0106 (0.90x), with joint normals
+    # 0.0072 (0.61x) and alpha 0.23 (true 0.3; L2 normals bend towards the highlight)
+    assert 0.010 < lam < 0.015
+    assert fixed < 0.95 * lam
+    assert joint < 0.7 * lam
+    assert abs(float(model.params.shape[1]) - 0.3) < 0.1
+
+
+def test_bad_input():
+    surf, albedo = face(48)
+    images = jnp.asarray(np.where(surf.mask, albedo * np.maximum(
+        np.einsum("kc,hwc->khw", TRAIN, np.asarray(surf.normals)), 0), 0), jnp.float32)
+    with pytest.raises(ValueError, match="region"):
+        jaxps.fit_brdf(images, surf.normals, albedo, TRAIN, mask=surf.mask, method="ggx",
+                       region=0)
+    model = jaxps.fit_brdf(images, surf.normals, albedo, TRAIN, mask=surf.mask, method="ggx")
+    assert model.params.normals is not None  # refine_normals=True by default
+    with pytest.raises(ValueError, match="normals"):
+        jaxps.relight(model, np.zeros((8, 8, 3), np.float32), np.zeros((8, 8), np.float32),
+                      TEST)
+
+
+def half_diff_numpy(n, l):
+    """(θh, θd, φd) of Rusinkiewicz (1998) for one unit normal and light, view (0, 0, 1), by
+    rotating into the half vector's frame."""
+    v = np.array([0.0, 0.0, 1.0])
+    h = (l + v) / np.linalg.norm(l + v)
+    theta_h = np.arccos(np.clip(n @ h, -1, 1))
+    theta_d = np.arccos(np.clip(l @ h, -1, 1))
+    t = n - (n @ h) * h  # the plane of n and h fixes the azimuth's origin
+    t = t / np.linalg.norm(t)
+    b = np.cross(h, t)
+    phi = abs(np.arctan2(l @ b, l @ t))
+    return theta_h, theta_d, phi
+
+
+def test_half_difference_angles_against_numpy():
+    from jaxps.reflectance._parametric import _half_diff
+
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(20, 3)) * [0.4, 0.4, 1] + [0, 0, 1]
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    got = np.asarray(_half_diff(jnp.asarray(n, jnp.float32), jnp.asarray(TEST, jnp.float32)))
+    want = np.array([[half_diff_numpy(ni, li) for ni in n] for li in TEST])
+    np.testing.assert_allclose(got, want, atol=2e-3)
+
+
+def test_residual_mlp_on_the_synthetic_face():
+    """The residual network over (θh, θd, φd) on top of `wrap_ggx`: bounded by
+    RESIDUAL_BOUND x the diffuse albedo; it lowers the training error and raises the held-out
+    error (it overfits five lights)."""
+    from jaxps.reflectance._parametric import RESIDUAL_BOUND
+
+    surf, albedo = face(96)
+    m = np.asarray(surf.mask)
+
+    def render(lights):
+        on = np.asarray(jaxps.shading.render_oren_nayar(surf.normals, albedo, lights, 0.4))
+        return np.where(m, on + 0.15 * ggx_numpy(surf.normals, lights, 0.3), 0)
+
+    images = jnp.asarray(render(TRAIN), jnp.float32)
+    truth = render(TEST)
+    ps = jaxps.photometric_stereo(images, TRAIN, mask=m)
+    fits = {name: jaxps.fit_brdf(images, ps.normals, ps.albedo, TRAIN, mask=m, method=name,
+                                 region=None)
+            for name in ("lambertian", "wrap_ggx", "wrap_ggx_residual")}
+    err = {name: float(np.sqrt(np.mean(
+        (np.asarray(jaxps.relight(f, ps.normals, ps.albedo, TEST, mask=m)) - truth)[:, m] ** 2)))
+        for name, f in fits.items()}
+    base, resid = fits["wrap_ggx"], fits["wrap_ggx_residual"]
+    assert resid.params.residual is not None and base.params.residual is None
+    # measured: training RMSE 0.0066 -> 0.0014 with the network, held out 0.0112 -> 0.0136
+    # (Lambert 0.0120): it fits the five lights and does not transfer to the twelve others
+    assert resid.fit.rmse < 0.5 * base.fit.rmse
+    assert err["wrap_ggx"] < 0.95 * err["lambertian"] < err["wrap_ggx_residual"]
+    diff = np.asarray(jaxps.relight(resid, ps.normals, ps.albedo, TEST)) - np.asarray(
+        jaxps.relight(base, ps.normals, ps.albedo, TEST))
+    rho_d = np.asarray(ps.albedo * resid.params.diffuse_ratio)
+    assert np.all(np.abs(diff)[:, m] <= RESIDUAL_BOUND * rho_d[m] + 1e-5)
