@@ -47,6 +47,8 @@ ADDED = {
 # Issue 16 (part B): `BRDF_METHODS` gained the parametric models ("wrap", "oren_nayar", "ggx",
 # "blinn_phong", "wrap_ggx", "oren_nayar_ggx", "wrap_ggx_residual") and `fit_brdf` gained
 # `region` and `refine_normals` (their options); those two snapshot entries were rewritten.
+# Issue 16: `fit_brdf`'s default `method` became "wrap_ggx" (below Lambert's law held out on
+# every shared face; DESIGN.md named "mlp"), and `jaxps.cli`'s relight follows.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -105,16 +105,16 @@ def relight_parser(sub) -> None:
     p = sub.add_parser(
         "relight",
         help="fit a BRDF to the frames and render the face under new lights",
-        description="Photometric stereo on the frames, then fit_brdf (default auto: Lambert's "
-        "law unless leave-one-light-out shows a richer model predicts unseen lights), then "
+        description="Photometric stereo on the frames, then fit_brdf (default wrap_ggx: wrap "
+        "diffuse + GGX specular lobe, normals refined jointly; see docs/brdf.md), then "
         "write relit PNGs for each --light, relight.gif (a light circling the face) and "
         "relight.json (fit report) to --out.",
     )
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
     add_light_args(p)
     p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
-    p.add_argument("--method", default="auto",
-                   help="BRDF model (jaxps.BRDF_METHODS; default auto, see docs/brdf.md)")
+    p.add_argument("--method", default="wrap_ggx",
+                   help="BRDF model (jaxps.BRDF_METHODS; default wrap_ggx, see docs/brdf.md)")
     p.add_argument("--check-quality", action="store_true",
                    help="drop frames flagged by jaxps.check_frames (e.g. interlace-combed) "
                    "before fitting")

@@ -41,7 +41,7 @@ def relight_capture(
     yale_names: bool = False,
     ambient=None,
     mask="auto",
-    method: str = "auto",
+    method: str = "wrap_ggx",
     new_lights: list[tuple[float, float]] = (),
     circle_zenith_deg: float = 30.0,
     circle_frames: int = 36,
@@ -55,9 +55,10 @@ def relight_capture(
     **Arguments:**
     - `frames`, `lights`, `yale_names`, `ambient`, `mask`: as for `jaxps.acquisition.load_capture`
       (grey frames; colour frames are averaged to grey).
-    - `method`: one of `jaxps.BRDF_METHODS` (default `"auto"`: Lambert's law unless the
-      training frames show, leave-one-light-out, that a richer model predicts unseen lights;
-      K + 1 fits per candidate).
+    - `method`: one of `jaxps.BRDF_METHODS` (default `"wrap_ggx"`, `fit_brdf`'s default: wrap
+      diffuse + GGX lobe with normals refined jointly, the one model below Lambert's law on
+      held-out lights on every shared Yale B face; `"auto"`: Lambert's law unless the training
+      frames show, leave-one-light-out, that a richer model predicts unseen lights).
     - `new_lights`: (azimuth, elevation) pairs in degrees (Yale B convention), one PNG each.
     - `circle_zenith_deg`, `circle_frames`: the animation's light circles the view axis at this
       zenith angle in this many frames.
