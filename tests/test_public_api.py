@@ -40,6 +40,8 @@ ADDED = {
 # `jax.Array | int` (an int seed is accepted); those snapshot entries were rewritten; and
 # `jaxps.cli.reconstruct` gained `obj` and `points` (the OBJ and point cloud on request).
 # Issue 18: `load_capture` gained `crop_multiple` (face boxes grown to shape buckets).
+# Issue 18: `integrate` gained `cg_preconditioner` (multigrid by default, "jacobi" the CG of
+# before, kept for Cao et al.'s figures to the digit); only that entry of the snapshot rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 
