@@ -5,17 +5,18 @@ pixels of a mask. Written per edge of the 4-neighbour grid, that energy is
 $\\sum_e a_e (\\delta_e)^2 - 2 g_e \\delta_e$ with $\\delta_e = z_j - z_i$ the height step along
 edge $e = (i, j)$ (left to right, top to bottom), so its normal equations are a weighted graph
 Laplacian $L_a z = \\operatorname{div}(g)$. $L_a$ is applied as a 5-point stencil on the
-(cropped) image, never assembled, and solved by conjugate gradients with a Jacobi
-preconditioner inside one `jax.jit` (`lax.while_loop`, explicit step limits).
+(cropped) image, never assembled, and solved by conjugate gradients inside one `jax.jit`
+(`lax.while_loop`, explicit step limits), preconditioned by a geometric multigrid V-cycle
+(`pcg`, `_vcycle`) or, as Cao et al.'s code does, by the diagonal (Jacobi).
 
-Why a jitted matrix-free CG rather than `scipy.sparse`: the bilateral method's 10-30
-reweighting steps need ~3000-5000 CG steps in all on a DiLiGenT object. A direct `splu` took
-0.2-1 s per factorisation (one per step) on these objects. `benchmarks/bench_integration.py`
-runs Cao et al.'s algorithm as their code does it (system re-assembled each step, warm-started
-Jacobi `scipy.sparse.linalg.cg`, float64) in the same run as a baseline: same heights and step
-counts, 2-3x slower than this stencil version. A 2x2-aggregation multigrid preconditioner was
-tried: far fewer CG steps, but slower in all under XLA on CPU, and its near-exact solves moved
-the result away from Cao et al.'s figures, which depend on their inexact (`rtol=1e-3`) solves.
+Why a jitted matrix-free CG rather than `scipy.sparse`: the bilateral method's 10-40
+reweighting steps need ~3000-5000 Jacobi-CG steps in all on a DiLiGenT object (~200-500 with
+the multigrid preconditioner). A direct `splu` took 0.2-1 s per factorisation (one per step) on
+these objects. `benchmarks/bench_integration.py` runs Cao et al.'s algorithm as their code does
+it (system re-assembled each step, warm-started Jacobi `scipy.sparse.linalg.cg`, float64) in
+the same run as a baseline. The multigrid V-cycle needs `_keep` to be fast under XLA on CPU:
+without it XLA fuses each level's result into the next stencil's five reads and recomputes
+it, ~5x more per level (a V-cycle took 20-40 ms instead of 0.3 ms on a 250x310 grid).
 """
 
 from __future__ import annotations
