@@ -174,26 +174,27 @@ def pcg(ah, av, rhs, x0, *, rtol, max_steps, preconditioner="multigrid"):
             return _vcycle(levels, r)
     bound = (rtol * jnp.linalg.norm(rhs)).astype(rhs.dtype)
     r = rhs - laplacian(x0, ah, av)
-    s = prec(r)
-    rs = jnp.vdot(r, s)
 
     def cond(state):
         _, r, _, _, i = state
         return (jnp.linalg.norm(r) > bound) & (i < max_steps)
 
     def body(state):
+        # the preconditioner at the top of the step, so that it is compiled once (the first
+        # step has rs = 0, hence beta = 0 and d = s)
         x, r, d, rs, i = state
-        ad = laplacian(d, ah, av)
-        dad = jnp.vdot(d, ad)
-        alpha = jnp.where(dad > 0, rs / jnp.where(dad > 0, dad, one), 0).astype(rhs.dtype)
-        x = x + alpha * d
-        r = r - alpha * ad
         s = prec(r)
         rs_new = jnp.vdot(r, s)
         beta = jnp.where(rs > 0, rs_new / jnp.where(rs > 0, rs, one), 0).astype(rhs.dtype)
-        return x, r, s + beta * d, rs_new, i + 1
+        d = s + beta * d
+        ad = laplacian(d, ah, av)
+        dad = jnp.vdot(d, ad)
+        alpha = jnp.where(dad > 0, rs_new / jnp.where(dad > 0, dad, one), 0).astype(rhs.dtype)
+        return x + alpha * d, r - alpha * ad, d, rs_new, i + 1
 
-    x, r, _, _, steps = lax.while_loop(cond, body, (x0, r, s, rs, jnp.asarray(0)))
+    zero = jnp.zeros((), rhs.dtype)
+    x, r, _, _, steps = lax.while_loop(cond, body, (x0, r, jnp.zeros_like(r), zero,
+                                                    jnp.asarray(0)))
     return x, steps, jnp.linalg.norm(r) <= bound
 
 
