@@ -16,7 +16,7 @@ these objects. `benchmarks/bench_integration.py` runs Cao et al.'s algorithm as 
 it (system re-assembled each step, warm-started Jacobi `scipy.sparse.linalg.cg`, float64) in
 the same run as a baseline. The multigrid V-cycle needs `_keep` to be fast under XLA on CPU:
 without it XLA fuses each level's result into the next stencil's five reads and recomputes
-it, ~5x more per level (a V-cycle took 20-40 ms instead of 0.3 ms on a 250x310 grid).
+it, ~5x more work per level (tens of times slower in all in exploratory timings).
 """
 
 from __future__ import annotations
