@@ -109,8 +109,9 @@ _COARSE_SWEEPS = 10
 def _vcycle(levels, r):
     """One V(1,1)-cycle from 0 for $L_a x = r$: damped Jacobi before and after the coarse
     correction, the coarsest level by `_COARSE_SWEEPS` damped Jacobi sweeps. Symmetric and
-    positive semi-definite (same smoother before and after, symmetric coarse solve), so a valid
-    CG preconditioner. Pixels with no edge get 0."""
+    positive semi-definite (same smoother before and after, symmetric coarse solve) on CG's
+    residuals, which are 0 on pixels without edges and sum to 0 on each component, so a valid
+    CG preconditioner. Pixels with no edge (at any level) get 0."""
     (ah, av, dinv), rest = levels[0], levels[1:]
     om = jnp.asarray(_OMEGA, r.dtype)
     if not rest:
@@ -151,8 +152,8 @@ def pcg(ah, av, rhs, x0, *, rtol, max_steps, preconditioner="multigrid"):
     multigrid with 2x2 piecewise-constant aggregation and Galerkin coarse weights (Braess,
     "Towards algebraic multigrid for elliptic problems of second order", Computing 55, 1995:
     unsmoothed aggregation, here on the grid's 2x2 blocks), damped Jacobi smoothing
-    (`_vcycle`). Cost per CG step: about 3
-    Jacobi steps; CG steps: 5-25x fewer on DiLiGenT (docs/integration.md).
+    (`_vcycle`). On DiLiGenT: 10-21x fewer CG steps, each costing about 3 Jacobi-CG steps
+    (docs/integration.md).
 
     $L_a$ is singular (constants per connected component); the right-hand side of an integration
     problem lies in its range, so CG converges. Jacobi-CG started from `x0` keeps each
