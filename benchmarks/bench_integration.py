@@ -32,15 +32,19 @@ from jaxps.evaluate import angular_stats, height_stats
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OBJECTS = ("bear", "cat", "pot1", "reading")
-# (label, method, perspective)
+# (label, method, perspective, CG preconditioner); the "jacobi" rows: the CG preconditioner
+# before the multigrid one (Cao et al.'s), timed in the same process
 RUNS = (
-    ("fc", "fc", False),
-    ("dct", "dct", False),
-    ("lsq", "lsq", False),
-    ("lsq persp", "lsq", True),
-    ("bilateral", "bilateral", False),
-    ("bilateral persp", "bilateral", True),
-    ("auto persp", "auto", True),
+    ("fc", "fc", False, "multigrid"),
+    ("dct", "dct", False, "multigrid"),
+    ("lsq", "lsq", False, "multigrid"),
+    ("lsq persp", "lsq", True, "multigrid"),
+    ("lsq jacobi", "lsq", False, "jacobi"),
+    ("bilateral", "bilateral", False, "multigrid"),
+    ("bilateral persp", "bilateral", True, "multigrid"),
+    ("bilateral jacobi", "bilateral", False, "jacobi"),
+    ("bilateral persp jacobi", "bilateral", True, "jacobi"),
+    ("auto persp", "auto", True, "multigrid"),
 )
 
 
@@ -152,6 +156,9 @@ def main():
                         help="only: re-read the JSON, refresh its summary points and the chart")
     parser.add_argument("--sweep-cg-rtol", action="store_true",
                         help="only: bilateral (perspective) MADE and CG steps against cg_rtol")
+    parser.add_argument("--preconditioner", default="jacobi",
+                        help="CG preconditioner of --sweep-cg-rtol (jacobi: the file "
+                             "integration_cg_rtol.json, else integration_cg_rtol_NAME.json)")
     args = parser.parse_args()
     if args.quick:
         args.repeat = 1
@@ -168,12 +175,14 @@ def main():
             normals, mask, depth, K = load_diligent(name)
             for rtol in (1e-2, 3e-3, 1e-3, 1e-4):
                 res = jaxps.integrate(normals, mask=mask, method="bilateral", intrinsics=K,
-                                      cg_rtol=rtol, return_info=True)
+                                      cg_rtol=rtol, cg_preconditioner=args.preconditioner,
+                                      return_info=True)
                 sweep.setdefault(name, {})[str(rtol)] = {
                     "made_mm": height_stats(res.height, depth, mask=mask)["made"],
                     "steps": res.steps, "cg_steps": res.solver_steps}
                 print(name, rtol, sweep[name][str(rtol)], flush=True)
-        path = pathlib.Path(args.out + "_cg_rtol.json")
+        tail = "" if args.preconditioner == "jacobi" else "_" + args.preconditioner
+        path = pathlib.Path(args.out + f"_cg_rtol{tail}.json")
         path.write_text(json.dumps(sweep, indent=2))
         print("wrote", path)
         return
@@ -195,9 +204,9 @@ def main():
     for name in args.objects:
         normals, mask, depth, K = load_diligent(name)
         row = {"pixels": int(mask.sum())}
-        for label, method, persp in RUNS:
+        for label, method, persp, precond in RUNS:
             kw = {"mask": mask, "method": method, "intrinsics": K if persp else None,
-                  "return_info": True}
+                  "cg_preconditioner": precond, "return_info": True}
             res, first, runs = timed(lambda kw=kw: jaxps.integrate(normals, **kw), args.repeat)
             stats = height_stats(res.height, depth, mask=mask)
             row[label] = {
@@ -257,7 +266,7 @@ def chart(results, path):
     objects = results["objects"]
     fig, axes = plt.subplots(1, len(objects), figsize=(4 * len(objects), 3.8), squeeze=False)
     labels = [r[0] for r in RUNS] + ["scipy reference bilateral persp"]
-    colours = plt.cm.tab10(np.linspace(0, 1, 10))
+    colours = plt.cm.tab20(np.linspace(0, 1, len(labels)))
     for ax, (name, row) in zip(axes[0], objects.items()):
         for i, label in enumerate(labels):
             ax.scatter(row[label]["run_s"], row[label]["made_mm"], color=colours[i],

@@ -81,6 +81,7 @@ def test_float64_kept():
         (np.zeros((4, 4, 3), np.float32), {"mask": np.zeros((4, 4), bool)}, "mask is empty"),
         (np.zeros((4, 4, 3), np.float32), {"method": "nope"}, "method must be one of"),
         (np.zeros((4, 4, 3), np.float32), {"pixel_size": 0.0}, "pixel_size"),
+        (np.zeros((4, 4, 3), np.float32), {"cg_preconditioner": "ilu"}, "cg_preconditioner"),
     ],
 )
 def test_bad_input(normals, kwargs, match):

@@ -49,6 +49,8 @@ ADDED = {
 # `region` and `refine_normals` (their options); those two snapshot entries were rewritten.
 # Issue 16: `fit_brdf`'s default `method` became "wrap_ggx" (below Lambert's law held out on
 # every shared face; DESIGN.md named "mlp"), and `jaxps.cli`'s relight follows.
+# Issue 18: `integrate` gained `cg_preconditioner` (multigrid by default, "jacobi" the CG of
+# before, kept for Cao et al.'s figures to the digit); only that entry of the snapshot rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -5,17 +5,18 @@ pixels of a mask. Written per edge of the 4-neighbour grid, that energy is
 $\\sum_e a_e (\\delta_e)^2 - 2 g_e \\delta_e$ with $\\delta_e = z_j - z_i$ the height step along
 edge $e = (i, j)$ (left to right, top to bottom), so its normal equations are a weighted graph
 Laplacian $L_a z = \\operatorname{div}(g)$. $L_a$ is applied as a 5-point stencil on the
-(cropped) image, never assembled, and solved by conjugate gradients with a Jacobi
-preconditioner inside one `jax.jit` (`lax.while_loop`, explicit step limits).
+(cropped) image, never assembled, and solved by conjugate gradients inside one `jax.jit`
+(`lax.while_loop`, explicit step limits), preconditioned by a geometric multigrid V-cycle
+(`pcg`, `_vcycle`) or, as Cao et al.'s code does, by the diagonal (Jacobi).
 
-Why a jitted matrix-free CG rather than `scipy.sparse`: the bilateral method's 10-30
-reweighting steps need ~3000-5000 CG steps in all on a DiLiGenT object. A direct `splu` took
-0.2-1 s per factorisation (one per step) on these objects. `benchmarks/bench_integration.py`
-runs Cao et al.'s algorithm as their code does it (system re-assembled each step, warm-started
-Jacobi `scipy.sparse.linalg.cg`, float64) in the same run as a baseline: same heights and step
-counts, 2-3x slower than this stencil version. A 2x2-aggregation multigrid preconditioner was
-tried: far fewer CG steps, but slower in all under XLA on CPU, and its near-exact solves moved
-the result away from Cao et al.'s figures, which depend on their inexact (`rtol=1e-3`) solves.
+Why a jitted matrix-free CG rather than `scipy.sparse`: the bilateral method's 10-40
+reweighting steps need ~3000-5000 Jacobi-CG steps in all on a DiLiGenT object (~200-500 with
+the multigrid preconditioner). A direct `splu` took 0.2-1 s per factorisation (one per step) on
+these objects. `benchmarks/bench_integration.py` runs Cao et al.'s algorithm as their code does
+it (system re-assembled each step, warm-started Jacobi `scipy.sparse.linalg.cg`, float64) in
+the same run as a baseline. The multigrid V-cycle needs `_keep` to be fast under XLA on CPU:
+without it XLA fuses each level's result into the next stencil's five reads and recomputes
+it, ~5x more work per level (tens of times slower in all in exploratory timings).
 """
 
 from __future__ import annotations
@@ -69,39 +70,132 @@ def _edge_sum(ah, av):
     )
 
 
-def pcg(ah, av, rhs, x0, *, rtol, max_steps):
-    """Jacobi-preconditioned conjugate gradients for $L_a x = b$ (Hestenes & Stiefel, 1952).
+def _inverse(diag):
+    one = jnp.ones((), diag.dtype)
+    return jnp.where(diag > 0, one / jnp.where(diag > 0, diag, one), 0).astype(diag.dtype)
+
+
+def _keep(x):
+    """`x`, as a buffer: XLA would otherwise fuse its computation into each of the five reads of
+    the next stencil, and the V-cycle's levels compound that (5^levels recomputation). A
+    conditional it cannot resolve at compile time stops the fusion; the predicate is true unless
+    `x` already holds a non-finite value, which the other branch keeps non-finite."""
+    return lax.cond(jnp.isfinite(x[0, 0]), lambda v: v, lambda v: v + v[0, 0], x)
+
+
+def _coarsen(ah, av):
+    """Edge weights between the 2x2 aggregates of the grid (padded to even size with
+    edge-less pixels): the sum of the fine weights crossing between two aggregates, which is
+    the Galerkin operator $P^\\top L_a P$ of piecewise-constant prolongation $P$."""
+    h, w = ah.shape[0] + ah.shape[0] % 2, av.shape[1] + av.shape[1] % 2
+    ah = jnp.pad(ah, ((0, h - ah.shape[0]), (0, w - 1 - ah.shape[1])))[:, 1::2]
+    av = jnp.pad(av, ((0, h - 1 - av.shape[0]), (0, w - av.shape[1])))[1::2, :]
+    return ah[0::2] + ah[1::2], av[:, 0::2] + av[:, 1::2]
+
+
+def _hierarchy(ah, av):
+    """`(ah, av, 1/diag)` per level, 2x2 aggregation until the grid is at most 8 pixels wide."""
+    levels = [(ah, av, _inverse(_edge_sum(ah, av)))]
+    while max(ah.shape[0], av.shape[1]) > 8:
+        ah, av = _coarsen(ah, av)
+        levels.append((ah, av, _inverse(_edge_sum(ah, av))))
+    return levels
+
+
+_OMEGA = 0.8  # damped Jacobi; D^-1 L_a has eigenvalues in [0, 2], so omega < 1 smooths
+_COARSE_SWEEPS = 10
+
+
+def _vcycle(levels, r):
+    """One V(1,1)-cycle from 0 for $L_a x = r$: damped Jacobi before and after the coarse
+    correction, the coarsest level by `_COARSE_SWEEPS` damped Jacobi sweeps. Symmetric and
+    positive semi-definite (same smoother before and after, symmetric coarse solve) on CG's
+    residuals, which are 0 on pixels without edges and sum to 0 on each component, so a valid
+    CG preconditioner. Pixels with no edge (at any level) get 0."""
+    (ah, av, dinv), rest = levels[0], levels[1:]
+    om = jnp.asarray(_OMEGA, r.dtype)
+    if not rest:
+        x = om * dinv * r
+        for _ in range(_COARSE_SWEEPS - 1):
+            x = _keep(x + om * dinv * (r - laplacian(x, ah, av)))
+        return x
+    h, w = r.shape
+    x = om * dinv * r
+    res = jnp.pad(_keep(r - laplacian(x, ah, av)), ((0, h % 2), (0, w % 2)))
+    ec = _vcycle(rest, _keep(res[0::2, 0::2] + res[1::2, 0::2] + res[0::2, 1::2]
+                             + res[1::2, 1::2]))
+    e = _keep(jnp.repeat(jnp.repeat(ec, 2, axis=0), 2, axis=1)[:h, :w])
+    x = x + jnp.where(dinv > 0, e, 0)
+    return _keep(x + om * dinv * (r - laplacian(x, ah, av)))
+
+
+def _keep_mean(x, x0, ah, av, labels):
+    """`x` shifted on each connected component so that its $D$-weighted mean ($D$ = diag
+    $L_a$) is that of `x0`, as Jacobi-preconditioned CG keeps it."""
+    diag = _edge_sum(ah, av)
+    lab = labels.reshape(-1)
+    n = lab.shape[0]
+    sd = jax.ops.segment_sum(diag.reshape(-1), lab, num_segments=n)
+    sx = jax.ops.segment_sum((diag * (x - x0)).reshape(-1), lab, num_segments=n)
+    one = jnp.ones((), x.dtype)
+    shift = jnp.where(sd > 0, sx / jnp.where(sd > 0, sd, one), 0)[lab].reshape(x.shape)
+    return jnp.where(diag > 0, x - shift, x0)
+
+
+PRECONDITIONERS = ("multigrid", "jacobi")
+
+
+def pcg(ah, av, rhs, x0, *, rtol, max_steps, preconditioner="multigrid"):
+    """Preconditioned conjugate gradients for $L_a x = b$ (Hestenes & Stiefel, 1952).
+
+    `preconditioner`: `"jacobi"` ($D^{-1}$) or `"multigrid"`: one V(1,1)-cycle of geometric
+    multigrid with 2x2 piecewise-constant aggregation and Galerkin coarse weights (Braess,
+    "Towards algebraic multigrid for elliptic problems of second order", Computing 55, 1995:
+    unsmoothed aggregation, here on the grid's 2x2 blocks), damped Jacobi smoothing
+    (`_vcycle`). On DiLiGenT: 10-21x fewer CG steps, each costing about 3 Jacobi-CG steps
+    (docs/integration.md).
 
     $L_a$ is singular (constants per connected component); the right-hand side of an integration
-    problem lies in its range, so CG converges, and started from a zero-mean `x0` it keeps each
-    component's mean. Pixels with no edge keep `x0`. Stops when $\\|r\\| \\le$ `rtol` $\\|b\\|$
-    or after `max_steps`. Returns `(x, steps, converged)`.
+    problem lies in its range, so CG converges. Jacobi-CG started from `x0` keeps each
+    component's $D$-weighted mean ($D$ = diag $L_a$) of `x0`; `"multigrid"` does not (its
+    coarse corrections move the constants; `solve_laplacian` shifts them back with
+    `_keep_mean`). Pixels with no edge keep `x0`. Stops when $\\|r\\| \\le$ `rtol` $\\|b\\|$ or after
+    `max_steps`. Returns `(x, steps, converged)`.
     """
     one = jnp.ones((), rhs.dtype)
-    diag = _edge_sum(ah, av)
-    minv = jnp.where(diag > 0, one / jnp.where(diag > 0, diag, one), 0).astype(rhs.dtype)
+    if preconditioner == "jacobi":
+        minv = _inverse(_edge_sum(ah, av))
+
+        def prec(r):
+            return minv * r
+    else:
+        levels = _hierarchy(ah, av)
+
+        def prec(r):
+            return _vcycle(levels, r)
     bound = (rtol * jnp.linalg.norm(rhs)).astype(rhs.dtype)
     r = rhs - laplacian(x0, ah, av)
-    s = minv * r
-    rs = jnp.vdot(r, s)
 
     def cond(state):
         _, r, _, _, i = state
         return (jnp.linalg.norm(r) > bound) & (i < max_steps)
 
     def body(state):
+        # the preconditioner at the top of the step, so that it is compiled once (the first
+        # step has rs = 0, hence beta = 0 and d = s)
         x, r, d, rs, i = state
-        ad = laplacian(d, ah, av)
-        dad = jnp.vdot(d, ad)
-        alpha = jnp.where(dad > 0, rs / jnp.where(dad > 0, dad, one), 0).astype(rhs.dtype)
-        x = x + alpha * d
-        r = r - alpha * ad
-        s = minv * r
+        s = prec(r)
         rs_new = jnp.vdot(r, s)
         beta = jnp.where(rs > 0, rs_new / jnp.where(rs > 0, rs, one), 0).astype(rhs.dtype)
-        return x, r, s + beta * d, rs_new, i + 1
+        d = s + beta * d
+        ad = laplacian(d, ah, av)
+        dad = jnp.vdot(d, ad)
+        alpha = jnp.where(dad > 0, rs_new / jnp.where(dad > 0, dad, one), 0).astype(rhs.dtype)
+        return x + alpha * d, r - alpha * ad, d, rs_new, i + 1
 
-    x, r, _, _, steps = lax.while_loop(cond, body, (x0, r, s, rs, jnp.asarray(0)))
+    zero = jnp.zeros((), rhs.dtype)
+    x, r, _, _, steps = lax.while_loop(cond, body, (x0, r, jnp.zeros_like(r), zero,
+                                                    jnp.asarray(0)))
     return x, steps, jnp.linalg.norm(r) <= bound
 
 
@@ -130,12 +224,12 @@ def _components(ah, av):
     return lab
 
 
-def _project_to_range(b, ah, av):
+def _project_to_range(b, ah, av, labels):
     """`b` minus, on each connected component $C$, $D \\mathbf 1_C \\sum_C b / \\sum_C D$ (with
     $D$ = diag $L_a$), and 0 on pixels with no edge: the part of `b` that the transpose of the
     solve `pcg` computes sees (see `solve_laplacian`)."""
     diag = _edge_sum(ah, av)
-    lab = _components(ah, av).reshape(-1)
+    lab = labels.reshape(-1)
     n = lab.shape[0]
     sb = jax.ops.segment_sum(b.reshape(-1), lab, num_segments=n)
     sd = jax.ops.segment_sum(diag.reshape(-1), lab, num_segments=n)
@@ -144,15 +238,16 @@ def _project_to_range(b, ah, av):
     return jnp.where(diag > 0, b - diag * ratio, 0)
 
 
-def solve_laplacian(ah, av, rhs, x0, *, rtol, max_steps):
+def solve_laplacian(ah, av, rhs, x0, *, rtol, max_steps, preconditioner="multigrid"):
     """`pcg` for $L_a x = b$, differentiable by the implicit function theorem.
 
     Wrapped in `jax.lax.custom_linear_solve` (symmetric), so reverse mode never goes through
     the CG loop: the cotangent $\\bar x$ is carried back by one more `pcg` solve
     $L_a \\lambda = \\bar x$ (giving $\\bar b = \\lambda$ and $\\bar a_e = -\\lambda^\\top
     (\\partial L_a / \\partial a_e) x$), with the same tolerance and step limit. $L_a$ is
-    singular: started from 0, CG returns the solution whose Jacobi-weighted ($D$ = diag $L_a$)
-    mean is that of `x0` on each connected component, i.e. $x = x_0 + G(b - L_a x_0)$ with
+    singular: the solution returned has the Jacobi-weighted ($D$ = diag $L_a$) mean of `x0`
+    on each connected component (as Jacobi-CG keeps it; `_keep_mean` makes it so for either
+    preconditioner), i.e. $x = x_0 + G(b - L_a x_0)$ with
     $G = (I - N (N^\\top D N)^{-1} N^\\top D) L_a^+$ ($N$: one indicator column per component).
     The transpose solve therefore projects $\\bar x$ by $I - D N (N^\\top D N)^{-1} N^\\top$
     first (`_project_to_range`), which also makes its system consistent. $\\bar b$ is exact up
@@ -163,20 +258,22 @@ def solve_laplacian(ah, av, rhs, x0, *, rtol, max_steps):
     Returns `(x, steps, converged)` of the forward solve.
     """
     x0 = lax.stop_gradient(x0)
+    a_h, a_v = lax.stop_gradient(ah), lax.stop_gradient(av)
+    labels = _components(a_h, a_v)
+    kw = {"rtol": rtol, "max_steps": max_steps, "preconditioner": preconditioner}
 
     def matvec(x):
         return laplacian(x, ah, av)
 
+    def solve_from(b, start):
+        x, steps, ok = pcg(a_h, a_v, b, start, **kw)
+        return _keep_mean(x, start, a_h, a_v, labels), (steps, ok)
+
     def solve(_, b):
-        x, steps, ok = pcg(lax.stop_gradient(ah), lax.stop_gradient(av), b, x0, rtol=rtol,
-                           max_steps=max_steps)
-        return x, (steps, ok)
+        return solve_from(b, x0)
 
     def transpose_solve(_, b):
-        a_h, a_v = lax.stop_gradient(ah), lax.stop_gradient(av)
-        x, steps, ok = pcg(a_h, a_v, _project_to_range(b, a_h, a_v), jnp.zeros_like(b),
-                           rtol=rtol, max_steps=max_steps)
-        return x, (steps, ok)
+        return solve_from(_project_to_range(b, a_h, a_v, labels), jnp.zeros_like(b))
 
     x, (steps, ok) = lax.custom_linear_solve(matvec, rhs, solve, transpose_solve,
                                              symmetric=True, has_aux=True)
@@ -189,8 +286,8 @@ def _edges(valid):
     return eh, ev
 
 
-@partial(jax.jit, static_argnames=("max_steps",))
-def lsq_midpoint(gc, gr, valid, *, rtol, max_steps):
+@partial(jax.jit, static_argnames=("max_steps", "preconditioner"))
+def lsq_midpoint(gc, gr, valid, *, rtol, max_steps, preconditioner="multigrid"):
     """Masked least squares: $\\min_z \\sum_{e=(i,j)} (z_j - z_i - (g_i + g_j)/2)^2$ over the
     edges with both ends in `valid`.
 
@@ -205,12 +302,13 @@ def lsq_midpoint(gc, gr, valid, *, rtol, max_steps):
     gh = ah * (gc[:, 1:] + gc[:, :-1]) / 2
     gv = av * (gr[1:, :] + gr[:-1, :]) / 2
     z, steps, ok = solve_laplacian(ah, av, edge_div(gh, gv), jnp.zeros_like(gc), rtol=rtol,
-                                   max_steps=max_steps)
+                                   max_steps=max_steps, preconditioner=preconditioner)
     return GridSolve(z, jnp.asarray(1), steps, ok)
 
 
-@partial(jax.jit, static_argnames=("max_steps", "cg_max_steps"))
-def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps):
+@partial(jax.jit, static_argnames=("max_steps", "cg_max_steps", "preconditioner"))
+def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps,
+              preconditioner="multigrid"):
     """Bilateral normal integration (Cao, Shi, Nakaya, Li, Shi, "Bilateral Normal Integration",
     ECCV 2022): iteratively reweighted least squares over one-sided differences.
 
@@ -222,7 +320,7 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
     perspective variant only changes $m$ (see `_integrate.py`). Starts from $w = 1/2$ (plain
     least squares), stops when the energy's relative change is below `tol` or after
     `max_steps` reweightings (the energy as Cao et al.'s code computes it, see `energy`);
-    each weighted system is solved by warm-started `pcg`.
+    each weighted system is solved by warm-started `pcg` (`preconditioner`).
 
     Gradients (reverse mode): the reweighting loop runs on `stop_gradient` inputs, and its last
     weighted least-squares solve is then repeated, warm-started from its own answer (so it
@@ -275,7 +373,8 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
 
     def solve(z, wu, wv):
         ah, av, rhs = system(wu, wv, mu, mv, bu, bv)
-        return pcg(ah, av, rhs, z, rtol=cg_rtol, max_steps=cg_max_steps)
+        return pcg(ah, av, rhs, z, rtol=cg_rtol, max_steps=cg_max_steps,
+                   preconditioner=preconditioner)
 
     def weights(z):
         dh, dv = steps_of(z)
@@ -307,6 +406,7 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
     converged = (jnp.abs(e - e_old) <= tol * e_old) & cg_ok
     # The last solve again, differentiable in mu, mv, bu, bv with its weights fixed.
     ah, av, rhs = system(wu, wv, mu_in, mv_in, bu_in, bv_in)
-    z, n, ok = solve_laplacian(ah, av, rhs, z, rtol=cg_rtol, max_steps=cg_max_steps)
+    z, n, ok = solve_laplacian(ah, av, rhs, z, rtol=cg_rtol, max_steps=cg_max_steps,
+                               preconditioner=preconditioner)
     return GridSolve(z, i, n_cg + n, converged & ok)
 
