@@ -188,11 +188,12 @@ def _shared_constants(lights):
 def ps_l2(images, lights, mask, sample_mask, thresholds):
     """Jitted core. `images` `(K, H, W, C)`; `lights` `(K, 3)` or `(K, H, W, 3)`;
     `sample_mask` `(K, H, W)` bool or None (every sample allowed)."""
-    return ps_l2_at(images[None], 0, lights, mask, sample_mask, thresholds)
+    return ps_l2_at(images, None, lights, mask, sample_mask, thresholds)
 
 
 def ps_l2_at(stack, index, lights, mask, sample_mask, thresholds):
-    """`ps_l2` on capture `index` of an `(N, K, H, W, C)` `stack` (traceable; not jitted).
+    """`ps_l2` on capture `index` of an `(N, K, H, W, C)` `stack`, or on `stack` itself, a
+    `(K, H, W, C)` capture, when `index` is None (traceable; not jitted).
 
     The kernels take one plane per sample and channel (`(H*W,)` each), sliced from the stack
     where they are read, rather than slicing a `(K, H*W, C)` block: under `vmap`, indexing a
@@ -202,13 +203,17 @@ def ps_l2_at(stack, index, lights, mask, sample_mask, thresholds):
     a real branch outside `vmap` (under `vmap` over captures `lax.cond` runs both;
     `photometric_stereo_batch` maps captures in sequence). The branches take the whole stack
     and the index as operands: an operand of a `cond` is a buffer, so a capture sliced before
-    it would be copied first (one full read and write of the capture, in a batch loop).
+    it would be copied first (one full read and write of the capture, in a batch loop). A
+    single capture goes in as it is: given as a `(1, K, H, W, C)` stack, XLA-CPU copied it into
+    each branch (about 40% slower).
     """
-    _, k, h, w, c = stack.shape
+    k, h, w, c = stack.shape[-4:]
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
 
     def planes(stack, sample_mask, mask):
         def plane(i, j):
+            if index is None:
+                return stack[i, :, :, j].reshape(-1)
             return jax.lax.dynamic_slice(stack, (index, i, 0, 0, j), (1, 1, h, w, 1)).reshape(-1)
 
         x = [[plane(i, j) for j in range(c)] for i in range(k)]
