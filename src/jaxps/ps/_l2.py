@@ -187,41 +187,26 @@ def _shared_constants(lights):
 @jax.jit
 def ps_l2(images, lights, mask, sample_mask, thresholds):
     """Jitted core. `images` `(K, H, W, C)`; `lights` `(K, 3)` or `(K, H, W, 3)`;
-    `sample_mask` `(K, H, W)` bool or None (every sample allowed)."""
-    return ps_l2_at(images, None, lights, mask, sample_mask, thresholds)
+    `sample_mask` `(K, H, W)` bool or None (every sample allowed: no mask planes are read, or
+    copied into the `cond` below).
 
-
-def ps_l2_at(stack, index, lights, mask, sample_mask, thresholds):
-    """`ps_l2` on capture `index` of an `(N, K, H, W, C)` `stack`, or on `stack` itself, a
-    `(K, H, W, C)` capture, when `index` is None (traceable; not jitted).
-
-    The kernels take one plane per sample and channel (`(H*W,)` each), sliced from the stack
-    where they are read, rather than slicing a `(K, H*W, C)` block: under `vmap`, indexing a
-    batched block moves the pixel axis first (a transposed copy), while separate planes are
-    read in place. Shared lights take a single pass with $L^+$ (`_pixel_all_used`); only if
-    some pixel in the mask dropped a sample is the image solved again with per-pixel weights,
-    a real branch outside `vmap` (under `vmap` over captures `lax.cond` runs both;
-    `photometric_stereo_batch` maps captures in sequence). The branches take the whole stack
-    and the index as operands: an operand of a `cond` is a buffer, so a capture sliced before
-    it would be copied first (one full read and write of the capture, in a batch loop). A
-    single capture goes in as it is: given as a `(1, K, H, W, C)` stack, XLA-CPU copied it into
-    each branch (about 40% slower).
+    The kernels take one plane per sample and channel (`(H*W,)` each) rather than slicing a
+    `(K, H*W, C)` block: under `vmap`, indexing a batched block moves the pixel axis first (a
+    transposed copy), while separate planes are read in place. Shared lights take a single
+    pass with $L^+$ (`_pixel_all_used`); only if some pixel in the mask dropped a sample is the
+    image solved again with per-pixel weights, a real branch outside `vmap` (under `vmap` over
+    captures `lax.cond` runs both; `photometric_stereo_batch` unrolls captures instead).
     """
-    k, h, w, c = stack.shape[-4:]
+    k, h, w, c = images.shape
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
 
-    def planes(stack, sample_mask, mask):
-        def plane(i, j):
-            if index is None:
-                return stack[i, :, :, j].reshape(-1)
-            return jax.lax.dynamic_slice(stack, (index, i, 0, 0, j), (1, 1, h, w, 1)).reshape(-1)
-
-        x = [[plane(i, j) for j in range(c)] for i in range(k)]
+    def planes(images, sample_mask, mask):
+        x = [[images[i, :, :, j].reshape(-1) for j in range(c)] for i in range(k)]
         usable = ([True] * k if sample_mask is None
                   else [sample_mask[i].reshape(-1) for i in range(k)])
         return x, usable, mask.reshape(-1)
 
-    def weighted(stack, lights, mask, sample_mask, thresholds):
+    def weighted(images, lights, mask, sample_mask, thresholds):
         per_pixel = lights.ndim == 4
         if per_pixel:
             lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
@@ -229,15 +214,15 @@ def ps_l2_at(stack, index, lights, mask, sample_mask, thresholds):
         else:
             lt = [[lights[i, p] for p in range(3)] for i in range(k)]
         return jax.vmap(_pixel_weighted, in_axes=(0, axis, 0, 0 if per_pixel else None, None))(
-            *planes(stack, sample_mask, mask), lt, thresholds)
+            *planes(images, sample_mask, mask), lt, thresholds)
 
-    def all_used(stack, lights, mask, sample_mask, thresholds):
+    def all_used(images, lights, mask, sample_mask, thresholds):
         return jax.vmap(_pixel_all_used, in_axes=(0, axis, 0, None, None))(
-            *planes(stack, sample_mask, mask), _shared_constants(lights), thresholds)
+            *planes(images, sample_mask, mask), _shared_constants(lights), thresholds)
 
-    args = (stack, lights, mask, sample_mask, thresholds)
+    args = (images, lights, mask, sample_mask, thresholds)
     if lights.ndim == 2:
-        # The flag pass costs one read of the stack; it lets the branches take only the inputs
+        # The flag pass costs one read of the images; it lets the branches take only the inputs
         # as operands (planes or results built outside a `cond` would be copied into it). Where
         # no sample is dropped the two solves agree to rounding (the tests hold both to numpy
         # lstsq), so the weighted one replaces the fast one whole rather than pixel by pixel:
