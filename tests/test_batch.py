@@ -37,10 +37,10 @@ def test_batch_equals_single_calls(method):
 
 @pytest.mark.parametrize("colour", [False, True])
 @pytest.mark.parametrize("dtype", [np.float32, np.float16])
-def test_batch_l2_stack_path_equals_single_calls(colour, dtype):
-    """The default L2 batch reads each capture from the stack (`ps_l2_at`): every output, with
-    a shared mask, per-capture sample masks, a shadow threshold (dropped samples take the
-    weighted branch) and float16 input, equals the single call."""
+def test_batch_l2_equals_single_calls_with_dropped_samples(colour, dtype):
+    """Every L2 output of a batch given as a list, with a shared mask, per-capture sample masks,
+    a shadow threshold (dropped samples take the weighted branch), colour and float16 input,
+    equals the single call."""
     scenes, images = _captures()
     if colour:
         images = images[..., None] * np.float32([1.0, 0.8, 0.6])

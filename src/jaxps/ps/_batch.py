@@ -20,16 +20,12 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._host import aligned_empty
 from ..lights._directions import validate_lights
-from ._l2 import PSResult, ps_l2
+from ._l2 import PSResult
 from ._photometric_stereo import PS_METHODS, photometric_stereo
 
 __all__ = ["photometric_stereo_batch"]
 
 _CACHE: dict = {}
-# `photometric_stereo`'s defaults for the L2 options, in the solver's `thresholds` order.
-_L2_THRESHOLDS = {"dark_threshold": 1e-3, "saturation": 1.0, "shadow_threshold": None}
-# Captures per call of the unrolled L2 path when no `chunk` is given (compile time grows with it).
-_UNROLL = 8
 
 
 def _stack_captures(images):
@@ -59,12 +55,6 @@ def _stack_captures(images):
     return images
 
 
-def _unrolled(method, options, shared_lights, vmap_size):
-    """Whether the batch takes the unrolled L2 path (the default on one device)."""
-    return (method == "l2" and shared_lights and vmap_size is None
-            and set(options) <= set(_L2_THRESHOLDS))
-
-
 def _batched_fn(method, options, shared_lights, shared_mask, vmap_size):
     key = (method, shared_lights, shared_mask, vmap_size, tuple(sorted(options.items())))
     try:
@@ -77,37 +67,6 @@ def _batched_fn(method, options, shared_lights, shared_mask, vmap_size):
     def single(images, lights, mask, sample_mask):
         return photometric_stereo(images, lights, mask=mask, sample_mask=sample_mask,
                                   method=method, **options)
-
-    if _unrolled(method, options, shared_lights, vmap_size):
-        # The default path: the captures of a chunk are unrolled in one jitted call, each with
-        # the single-capture kernel. Measured on XLA-CPU (docs/captures.md), a `lax.map` loop
-        # over them was slower than single calls: the loop copies the stack into its state and
-        # its body's fusions read the planes through dynamic slices.
-        limits = {**_L2_THRESHOLDS, **options}
-        limits["shadow_threshold"] = (-np.inf if limits["shadow_threshold"] is None
-                                      else limits["shadow_threshold"])
-
-        def batched_l2(images, lights, mask, sample_mask):
-            out_dtype = images.dtype
-            dtype = jnp.float32 if out_dtype == jnp.float16 else out_dtype  # as `_run`
-            thresholds = tuple(jnp.asarray(limits[name], dtype) for name in _L2_THRESHOLDS)
-            grey = images.ndim == 4
-            outs = []
-            for i in range(images.shape[0]):
-                x = images[i].astype(dtype)
-                res = ps_l2(x[..., None] if grey else x, lights.astype(dtype),
-                            mask if shared_mask else mask[i],
-                            None if sample_mask is None else sample_mask[i], thresholds)
-                outs.append(res._replace(
-                    normals=res.normals.astype(out_dtype),
-                    albedo=(res.albedo[..., 0] if grey else res.albedo).astype(out_dtype),
-                    residual=res.residual.astype(out_dtype)))
-            return jax.tree.map(lambda *a: jnp.stack(a), *outs)
-
-        fn = jax.jit(batched_l2)
-        if key is not None:
-            _CACHE[key] = fn
-        return fn
 
     # Shared lights / mask stay unbatched (closed over), so per-light work is done once.
     def batched(images, lights, mask, sample_mask):
@@ -151,14 +110,12 @@ def photometric_stereo_batch(
     - `sample_mask`: `(N, K, H, W)` bool; default all samples.
     - `method`: one of `jaxps.PS_METHODS` (solver options as in `photometric_stereo`).
     - `chunk`: solve at most this many captures per call (bounds host/device memory); default
-      8 on the default L2 path (below), else all.
+      all.
     - `vmap_size`: captures vectorised together with `jax.vmap` inside one call; the groups run
       one after another (`jax.lax.map(..., batch_size=vmap_size)`). `None` (default) runs the
-      captures one after another: for `"l2"` with shared lights (and only threshold options)
-      the captures of a chunk are unrolled in one call, each with the single-capture kernel;
-      otherwise `lax.map` runs them in sequence. On a CPU that is the fastest: the pixels of
-      one capture already fill the cores, and under `vmap` the L2 solver's branch on "some
-      sample dropped" (a `lax.cond`) evaluates both sides. See docs/captures.md for the
+      captures one after another inside the one call, which on a CPU is the fastest: the
+      pixels of one capture already fill the cores, and under `vmap` the L2 solver's branch on
+      "some sample dropped" (a `lax.cond`) evaluates both sides. See docs/captures.md for the
       measured ratios.
 
     With several devices the whole chunk is vmapped and its capture axis padded to a multiple
@@ -201,10 +158,7 @@ def photometric_stereo_batch(
     fn = _batched_fn(method, options, shared_lights, shared_mask,
                      "all" if len(jax.devices()) > 1 else vmap_size)
     devices = jax.devices()
-    if chunk is None:  # the unrolled L2 path compiles one kernel per capture of a chunk
-        chunk = _UNROLL if _unrolled(method, options, shared_lights, vmap_size) and len(
-            jax.devices()) == 1 else n
-    step = chunk
+    step = n if chunk is None else chunk
     parts = []
     for start in range(0, n, step):
         sl = slice(start, min(start + step, n))
