@@ -46,6 +46,20 @@ def wrap_numpy(normals, lights, w):
     return np.maximum((ci + w) / (1 + w), 0)
 
 
+def oren_nayar_ggx_face(h):
+    """Issue 16's synthetic face: Oren–Nayar (σ = 0.4) plus a GGX lobe (α = 0.3), rendered under
+    TRAIN and TEST; the mask, the training images, the held-out truth and L2 PS on TRAIN."""
+    surf, albedo = face(h)
+    m = np.asarray(surf.mask)
+
+    def render(lights):
+        on = np.asarray(jaxps.shading.render_oren_nayar(surf.normals, albedo, lights, 0.4))
+        return np.where(m, on + 0.15 * ggx_numpy(surf.normals, lights, 0.3), 0)
+
+    images = jnp.asarray(render(TRAIN), jnp.float32)
+    return m, images, render(TEST), jaxps.photometric_stereo(images, TRAIN, mask=m)
+
+
 def test_wrap_ggx_recovers_known_shape_and_albedos_on_true_normals():
     surf, albedo = face()
     m = np.asarray(surf.mask)
@@ -91,16 +105,7 @@ def test_blinn_phong_exponent_and_frame_gains_recovered():
 def test_synthetic_face_held_out_below_lambert():
     """Issue 16's synthetic target: normals and albedo from L2 photometric stereo on the five
     training frames (they absorb the highlight), held-out RMSE at most 0.9x Lambert's."""
-    surf, albedo = face(128)
-    m = np.asarray(surf.mask)
-
-    def render(lights):
-        on = np.asarray(jaxps.shading.render_oren_nayar(surf.normals, albedo, lights, 0.4))
-        return np.where(m, on + 0.15 * ggx_numpy(surf.normals, lights, 0.3), 0)
-
-    images = jnp.asarray(render(TRAIN), jnp.float32)
-    truth = render(TEST)
-    ps = jaxps.photometric_stereo(images, TRAIN, mask=m)
+    m, images, truth, ps = oren_nayar_ggx_face(128)
 
     def err(model):
         pred = np.asarray(jaxps.relight(model, ps.normals, ps.albedo, TEST, mask=m))
@@ -165,16 +170,7 @@ def test_residual_mlp_on_the_synthetic_face():
     error (it overfits five lights)."""
     from jaxps.reflectance._parametric import RESIDUAL_BOUND
 
-    surf, albedo = face(96)
-    m = np.asarray(surf.mask)
-
-    def render(lights):
-        on = np.asarray(jaxps.shading.render_oren_nayar(surf.normals, albedo, lights, 0.4))
-        return np.where(m, on + 0.15 * ggx_numpy(surf.normals, lights, 0.3), 0)
-
-    images = jnp.asarray(render(TRAIN), jnp.float32)
-    truth = render(TEST)
-    ps = jaxps.photometric_stereo(images, TRAIN, mask=m)
+    m, images, truth, ps = oren_nayar_ggx_face(96)
     fits = {name: jaxps.fit_brdf(images, ps.normals, ps.albedo, TRAIN, mask=m, method=name,
                                  region=None)
             for name in ("lambertian", "wrap_ggx", "wrap_ggx_residual")}
