@@ -13,7 +13,6 @@ This is the face scanners' mean-intensity equalisation corrected for each light'
 
 from __future__ import annotations
 
-import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
