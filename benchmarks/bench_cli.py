@@ -30,10 +30,10 @@ import tempfile
 import time
 
 try:
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import data_dir, environment, write_json
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import data_dir, environment, write_json
 
 QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 # (name, rows, columns): a 1.3 MP scanner frame and a Yale B frame.
@@ -111,8 +111,7 @@ NAMES = ("A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20")
 
 def _buckets(env):
     """Seconds per face-cropped capture, without and with shape buckets (fresh processes)."""
-    data = pathlib.Path(os.environ.get("JAXPS_DATA", pathlib.Path(__file__).resolve()
-                                       .parents[2] / "shared" / "data")) / "yaleb"
+    data = data_dir() / "yaleb"
     if not data.is_dir():
         return {"skipped": f"no Yale B data at {data}"}
     out = {}

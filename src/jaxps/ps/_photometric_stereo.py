@@ -141,7 +141,7 @@ def photometric_stereo(
         run = _run.__wrapped__ if method in _EAGER_SOLVERS else _run
     except TypeError:
         run = _run.__wrapped__
-    if run is not _run and not isinstance(images, jax.Array):
+    if run is not _run:
         images = to_device(images)  # the eager solvers take device arrays
     return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
                static=static)
