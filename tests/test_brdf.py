@@ -630,6 +630,25 @@ def test_auto_choice_rule_per_region():
     name, gate, report = choose_regions(folds, mask, regions=1, margin=1.0)
     assert name == "lambertian" and gate is None and "no candidate" in report["reason"]
     assert choose_regions(folds[:1], mask, regions=2, margin=0.0)[0] == "lambertian"
+    # the information criterion: necessary, not sufficient
+    name, _, report = choose_regions(folds, mask, regions=2, margin=1.0,
+                                     bics={"lambertian": 10.0, "mlp": 9.0})
+    assert name == "mlp" and report["bic_rejected"] == [] and report["bic"]["mlp"] == 9.0
+    name, gate, report = choose_regions(folds, mask, regions=2, margin=1.0,
+                                        bics={"lambertian": 10.0, "mlp": 10.0})
+    assert name == "lambertian" and gate is None and report["bic_rejected"] == ["mlp"]
+    assert "not below: mlp" in report["reason"]
+
+
+def test_bic_against_numpy():
+    from jaxps.reflectance._auto import bic
+
+    rng = np.random.default_rng(1)
+    obs, pred = rng.normal(size=(3, 4, 5)), rng.normal(size=(3, 4, 5))
+    valid = rng.random((3, 4, 5)) > 0.3
+    n = valid.sum()
+    rss = np.sum((pred - obs)[valid] ** 2)
+    assert bic(pred, obs, valid, 7) == pytest.approx(n * np.log(rss / n) + 7 * np.log(n))
 
 
 def test_auto_keeps_reflectance_and_drops_frame_gains(scene):
@@ -650,6 +669,16 @@ def test_auto_keeps_reflectance_and_drops_frame_gains(scene):
     assert model.method == "mlp_ratio" and choice["choice"] == "mlp_ratio", choice
     assert choice["gated_lolo_rmse"]["mlp_ratio"] < choice["lolo_rmse"]["lambertian"]
     assert model.fit.message.startswith("auto: mlp_ratio beat")
+    # the network's weights (5-10-10-1) and four free frame gains; its BIC below Lambert's,
+    # whose own is n ln(RSS / n) over the usable training samples
+    assert model.fit.n_params == (5 * 10 + 10) + (10 * 10 + 10) + (10 + 1) + 4
+    assert choice["bic"]["mlp_ratio"] < choice["bic"]["lambertian"]
+    lam = np.asarray(jaxps.render_lambertian(ps.normals, ps.albedo, s["train"]), np.float64)
+    obs = np.asarray(s["images"], np.float64)
+    valid = s["mask"][None] & (obs < 1) & (np.asarray(ps.albedo) > 0)[None]
+    n = valid.sum()
+    rss = np.sum((lam - obs)[valid] ** 2)
+    assert choice["bic"]["lambertian"] == pytest.approx(n * np.log(rss / n), rel=1e-5)
     score = jaxps.score_relighting(model, s["truth"], ps.normals, ps.albedo, s["test"],
                                    mask=s["mask"])
     assert score.ratio["raw_30"] < 0.9, score.ratio

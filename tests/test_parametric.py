@@ -80,6 +80,7 @@ def test_wrap_ggx_recovers_known_shape_and_albedos_on_true_normals():
     assert pred.dtype == np.float32
     assert np.max(np.abs(pred - render(TEST))[:, m]) < 5e-3
     assert model.fit.rmse < 1e-3
+    assert model.fit.n_params == 3  # w, alpha and one specular albedo (region=None)
 
 
 def test_blinn_phong_exponent_and_frame_gains_recovered():
@@ -100,6 +101,7 @@ def test_blinn_phong_exponent_and_frame_gains_recovered():
     assert abs(float(model.params.shape[1]) - 20) < 0.2
     np.testing.assert_allclose(model.fit.frame_gains, gains, atol=1e-3)
     np.testing.assert_allclose(np.asarray(model.params.specular)[m], 0.1, atol=1e-3)
+    assert model.fit.n_params == 1 + 1 + 4  # the exponent, one specular albedo, 4 free gains
 
 
 def test_synthetic_face_held_out_below_lambert():

@@ -51,6 +51,8 @@ ADDED = {
 # every shared face; DESIGN.md named "mlp"), and `jaxps.cli`'s relight follows.
 # Issue 18: `integrate` gained `cg_preconditioner` (multigrid by default, "jacobi" the CG of
 # before, kept for Cao et al.'s figures to the digit); only that entry of the snapshot rewritten.
+# Issue 16: `BRDFFit` gained `n_params` (the parameter count of `method="auto"`'s information
+# criterion); only that entry of the snapshot rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

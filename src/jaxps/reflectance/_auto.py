@@ -14,6 +14,16 @@ Friedman, *The Elements of Statistical Learning*, 2nd ed., §7.10). The candidat
 prediction (its own where kept, Lambert's elsewhere) has the lowest pooled leave-one-light-out
 error is fitted on all K frames and returned with a 0/1 `gate` per pixel; `relight` renders
 $L + \\text{gate}\\,(M - L)$. When no cell keeps any candidate the result is Lambert's law.
+
+A second, necessary test needs no held-out frame: the Bayesian information criterion of each
+model fitted on all K frames (Schwarz, "Estimating the dimension of a model", Annals of
+Statistics 6(2), 1978), $\\mathrm{BIC} = n \\ln(\\mathrm{RSS}/n) + p \\ln n$ over the $n$ usable
+masked training samples, with $p$ the parameters beyond the normal and albedo per pixel that
+Lambert's law has too (`BRDFFit.n_params`). A candidate whose BIC is not below Lambert's is not
+chosen, whatever its leave-one-light-out figures. The BIC trusts independent Gaussian noise,
+which neighbouring pixels of a face do not have, so it is the weaker test: it rejects a model
+whose fit gain does not pay for its parameters (e.g. a Delaunay interpolant, one parameter
+per sample), and leaves the rest to the held-out frames.
 """
 
 from __future__ import annotations
@@ -27,7 +37,7 @@ import numpy as np
 from ..lights._directions import MAX_LIGHT_CONDITION
 from ..ps import photometric_stereo
 
-__all__ = ["choose_regions", "lolo_folds", "region_labels"]
+__all__ = ["bic", "choose_regions", "lolo_folds", "region_labels"]
 
 
 def region_labels(mask, regions):
@@ -68,13 +78,25 @@ def lolo_folds(fit, relight, images, lights, mask, methods, *, ps_method, satura
     return folds
 
 
-def choose_regions(folds, mask, *, regions, margin):
+def bic(pred, obs, valid, n_params):
+    """$n \\ln(\\mathrm{RSS}/n) + p \\ln n$ over the `valid` samples (float64)."""
+    d = (np.asarray(pred, np.float64) - np.asarray(obs, np.float64))[np.asarray(valid)]
+    n = d.size
+    return float(n * math.log(max(float(d @ d), np.finfo(np.float64).tiny) / n)
+                 + n_params * math.log(n))
+
+
+def choose_regions(folds, mask, *, regions, margin, bics=None):
     """The choice of `fit_brdf(method="auto")` from `lolo_folds`' output: `(name, gate (H, W)
-    float64 0/1 or None, report dict)`; name is "lambertian" when no candidate is kept."""
+    float64 0/1 or None, report dict)`; name is "lambertian" when no candidate is kept.
+    `bics`: `{name: BIC}` of Lambert's law (`"lambertian"`) and the candidates fitted on every
+    frame; a candidate whose BIC is not below Lambert's is not chosen (None: no such test)."""
+    base = {"regions": regions, "margin": margin, "folds": [f[0] for f in folds]}
+    if bics is not None:
+        base["bic"] = dict(bics)
     if len(folds) < 2:
         return "lambertian", None, {
-            "choice": "lambertian", "regions": regions, "margin": margin,
-            "folds": [f[0] for f in folds],
+            "choice": "lambertian", **base,
             "reason": f"{len(folds)} leave-one-light-out folds: at least 2 are needed (K >= 5 "
                       "training frames, the other K-1 lights spanning 3-D), so Lambert's law"}
     labels = region_labels(mask, regions)
@@ -90,9 +112,8 @@ def choose_regions(folds, mask, *, regions, margin):
                                          for _, obs, valid, lam, _ in folds]))
     n = np.maximum(count, 1)
     total = float(count.sum())
-    report = {"regions": regions, "margin": margin, "folds": [f[0] for f in folds],
-              "lolo_rmse": {"lambertian": math.sqrt(lam_sse.sum() / total)}, "kept_cells": {},
-              "gated_lolo_rmse": {}}
+    report = {**base, "lolo_rmse": {"lambertian": math.sqrt(lam_sse.sum() / total)},
+              "kept_cells": {}, "gated_lolo_rmse": {}, "bic_rejected": []}
     best, best_sse, best_keep = "lambertian", float(lam_sse.sum()), None
     for name in names:
         sse = np.array([cell_sse(p[name], obs, valid)[0] for _, obs, valid, _, p in folds])
@@ -103,12 +124,18 @@ def choose_regions(folds, mask, *, regions, margin):
         report["lolo_rmse"][name] = math.sqrt(sse.sum() / total)
         report["gated_lolo_rmse"][name] = math.sqrt(gated / total)
         report["kept_cells"][name] = np.flatnonzero(keep).tolist()
+        if bics is not None and not bics[name] < bics["lambertian"]:
+            report["bic_rejected"].append(name)
+            continue
         if keep.any() and gated < best_sse:
             best, best_sse, best_keep = name, gated, keep
     report["choice"] = best
     if best_keep is None:
         report["reason"] = (f"no candidate beat Lambert's law by {margin:g} standard errors "
                             f"in any of the {n_cells} regions (leave-one-light-out)")
+        if report["bic_rejected"]:
+            report["reason"] += (" with a BIC below Lambert's (not below: "
+                                 f"{', '.join(report['bic_rejected'])})")
         return "lambertian", None, report
     gate = np.where(labels >= 0, best_keep[np.maximum(labels, 0)], False).astype(np.float64)
     report["gate_fraction"] = float(gate[np.asarray(mask, bool)].mean())
@@ -128,8 +155,24 @@ def fit_auto(fit, relight, images, normals, albedo, lights, *, mask, candidates,
     if images.shape[0] >= 5:  # with 3 frames a fold's Lambert fit is exact: nothing to learn
         folds = lolo_folds(fit, relight, images, lights, mask, candidates, ps_method=ps_method,
                            saturation=saturation, options=options)
-    choice, gate, report = choose_regions(folds, mask, regions=regions, margin=margin)
-    model = fit(images, normals, albedo, lights, mask=mask, method=choice, **options)
+    models, bics = {}, None
+    if len(folds) >= 2:  # the information criterion of every model fitted on all K frames
+        obs = np.asarray(images, np.float64)
+        valid = (np.asarray(mask)[None] & np.isfinite(obs) & (obs < saturation)
+                 & (np.asarray(albedo) > 0)[None])
+        bics = {}
+        for name in ("lambertian", *candidates):
+            models[name] = fit(images, normals, albedo, lights, mask=mask, method=name,
+                               **options)
+            pred = np.asarray(relight(models[name], normals, albedo, lights), np.float64)
+            gains = models[name].fit.frame_gains  # the training fit renders each frame's gain
+            if gains is not None:
+                pred = pred * np.asarray(gains)[:, None, None]
+            bics[name] = bic(pred, obs, valid, models[name].fit.n_params)
+    choice, gate, report = choose_regions(folds, mask, regions=regions, margin=margin, bics=bics)
+    model = models.get(choice)
+    if model is None:
+        model = fit(images, normals, albedo, lights, mask=mask, method=choice, **options)
     if gate is not None:
         model = dataclasses.replace(model, gate=jnp.asarray(gate, images.dtype))
     fit_report = model.fit._replace(choice=report,

@@ -127,10 +127,16 @@ class BRDFFit(NamedTuple):
       left-out frames whose fold was skipped: the other lights did not span 3-D); else None.
     - `frame_gains`: with `fit_brdf(..., frame_gains=True)`, the `K` fitted brightness factors
       of the training frames (geometric mean 1; the model renders at 1); else None.
+    - `n_params`: free parameters beyond the normal and albedo per pixel that Lambert's law
+      also has (0 for `"lambertian"`; the network's weights; for `"delaunay"` one per training
+      sample; for the parametric models the shape parameters and specular albedos), plus K - 1
+      frame gains where fitted. `method="auto"`'s information criterion counts them.
     - `choice`: with `method="auto"`, what was picked and why: `"choice"`, `"reason"`, and
       (with K >= 5) the leave-one-light-out RMSE of Lambert and each candidate (`"lolo_rmse"`;
-      `"gated_lolo_rmse"`: the candidate kept only in its `"kept_cells"`), `"regions"`,
-      `"margin"`, `"folds"`, `"gate_fraction"`; else None. The other figures are the chosen
+      `"gated_lolo_rmse"`: the candidate kept only in its `"kept_cells"`), the information
+      criterion of each model fitted on all K frames (`"bic"`) and the candidates it ruled
+      out (`"bic_rejected"`: BIC not below Lambert's), `"regions"`, `"margin"`, `"folds"`,
+      `"gate_fraction"`; else None. The other figures are the chosen
       method's fit on every pixel (before the gate).
     """
 
@@ -146,6 +152,7 @@ class BRDFFit(NamedTuple):
     loo_rmse: dict | None = None
     frame_gains: tuple[float, ...] | None = None
     choice: dict | None = None
+    n_params: int = 0
 
 
 class BRDFModel(eqx.Module):
@@ -542,23 +549,24 @@ def fit_brdf(
     if method == "lambertian":
         pred = rho * jnp.maximum(jnp.cos(f[:, 0]), 0)
         model = BRDFModel(method, None, **common)
-        return _with_fit(model, pred, target, 0, True, t0, "closed form")
+        return _with_fit(model, pred, target, 0, True, t0, "closed form", n_params=0)
     if method == "delaunay":
         ang = np.asarray(f[:, :3], np.float64)
         ratio = np.asarray(target, np.float64) / np.asarray(rho, np.float64)
         lin = _DelaunayBRDF(ang, ratio)
         pred = rho * jnp.asarray(lin(ang), dtype)
         model = BRDFModel(method, None, **common, interpolator=lin)
-        return _with_fit(model, pred, target, 0, True, t0, "interpolates the samples")
+        return _with_fit(model, pred, target, 0, True, t0, "interpolates the samples",
+                         n_params=int(np.size(target)))
     if method in _parametric.PARAMETRIC_METHODS:
-        params, gains, steps, ok, msg, pred, target = _parametric.fit(
+        params, gains, steps, ok, msg, pred, target, n_params = _parametric.fit(
             images, normals, albedo, lights, mask, usable, method=method, key=key_sample,
             n_samples=n_samples, solver=solver, max_steps=max_steps, frame_gains=frame_gains,
             region=region, refine_normals=refine_normals)
         extra = {"frame_gains": tuple(float(g) for g in np.asarray(gains))} if frame_gains else {}
         msg += f"; shape parameters {np.asarray(params.shape).round(4).tolist()}"
         return _with_fit(BRDFModel(method, params, **common), pred, target, steps, ok, t0, msg,
-                         **extra)
+                         n_params=n_params, **extra)
 
     ratio = method == "mlp_ratio"
     params = _init_mlp(key_init, (5, *hidden, 1), dtype)
@@ -574,6 +582,8 @@ def fit_brdf(
     gain = gains[frame]
     pred = res + target  # the training fit, frame gains included
     extra = {"frame_gains": tuple(float(g) for g in np.asarray(gains))} if frame_gains else {}
+    extra["n_params"] = (sum(int(np.size(a)) for layer in params for a in layer)
+                         + (k - 1) * bool(frame_gains))
     if shrink is None:
         return _with_fit(model, pred, target, int(steps), bool(ok), t0, msg, **extra)
     options = dict(method=method, key=key, n_samples=n_samples, hidden=hidden, bound=bound,

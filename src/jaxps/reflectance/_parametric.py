@@ -192,8 +192,11 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
          max_steps, frame_gains, region, refine_normals=False, rounds=2):
     """Fit `method` (a key of `PARAMETRIC_METHODS`). `usable`: `(K, H, W)` bool, samples that
     may be fitted. Returns `(ParametricParams, gains (K,), steps, converged, the solver's
-    message, prediction, target)`, the last two over the usable samples of every masked
-    pixel; steps are summed over the rounds, converged and the message are the last round's."""
+    message, prediction, target, n_params)`, prediction and target over the usable samples of
+    every masked pixel; steps are summed over the rounds, converged and the message are the
+    last round's. `n_params`: free parameters beyond a normal and an albedo per pixel (which
+    Lambert's law has too): the shape parameters, one specular albedo per region with a
+    fitted pixel, K - 1 frame gains, the residual network's weights."""
     if region is not None and int(region) < 1:
         raise ValueError(f"region must be a positive number of pixels or None, got {region}")
     diffuse, specular = PARAMETRIC_METHODS[method]
@@ -261,7 +264,10 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
         u_all = _half_diff(normals.reshape(-1, 3)[pix], lights)
         amp_all = RESIDUAL_BOUND * gains[:, None] * rho_d[None]
         pred = pred + amp_all * jnp.tanh(_mlp(params.residual, _scaled(u_all, box)))
-    return params, gains, steps, ok, message, pred[sel], target[sel]
+    n_params = ((diffuse != "lambert") + (specular is not None) + (k - 1) * bool(frame_gains)
+                + (specular is not None) * np.unique(region_map.reshape(-1)[pix]).size
+                + (0 if params.residual is None else ravel_pytree(params.residual)[0].size))
+    return params, gains, steps, ok, message, pred[sel], target[sel], int(n_params)
 
 
 def _half_diff(normals, lights):
