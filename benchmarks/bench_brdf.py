@@ -13,7 +13,8 @@ testing, as the pipeline would: yaleB02's +25,0 and +20,-10 are interlace-combed
 BRDF method on the same frames, and relight every other light within 60 (and 30) degrees of
 the view axis; RMSE in gray levels (0-255) over the face
 mask, raw and gain-compensated (one least-squares gain per held-out image, every method alike).
-Speed: LM training on 100,000 samples and relighting a 700x850 image (compile and run apart),
+Speed: LM training on 100,000 samples, the default `wrap_ggx` fit, and relighting a 700x850
+image with each (compile and run apart),
 with the previous per-sample relight kernel and the pieces of the new one timed in the same run.
 """
 
@@ -275,6 +276,14 @@ def speed(n_samples=100_000, h=700, w=850, steps=30):
               f"{model.fit.steps} steps", flush=True)
     models["lambertian"] = jaxps.fit_brdf(scene.images, scene.normals, scene.albedo, lights,
                                           mask=scene.mask, method="lambertian")
+    # the default model, with its default settings (n_samples, 30 LM steps, normals refined)
+    for key, name in ((0, "first_s"), (1, "s")):
+        t = time.perf_counter()
+        models["wrap_ggx"] = jaxps.fit_brdf(scene.images, scene.normals, scene.albedo, lights,
+                                            mask=scene.mask, key=key)
+        out[f"train_wrap_ggx_{name}"] = time.perf_counter() - t
+    print(f"train wrap_ggx (the default): first call {out['train_wrap_ggx_first_s']:.2f} s, "
+          f"second {out['train_wrap_ggx_s']:.2f} s", flush=True)
     out.update(relight_speed(models, scene.normals, scene.albedo))
     return out
 
@@ -334,6 +343,8 @@ def relight_speed(models, normals, albedo, rounds=15):
         "relight_mlp": lambda: jaxps.relight(models["mlp"], normals, albedo, light),
         "relight_mlp_ratio": lambda: jaxps.relight(m, normals, albedo, light),
         "relight_lambertian": lambda: jaxps.relight(models["lambertian"], normals, albedo, light),
+        "relight_wrap_ggx (the default)": lambda: jaxps.relight(models["wrap_ggx"], normals,
+                                                                albedo, light),
         "render_lambertian": lambda: jaxps.render_lambertian(normals, albedo, light),
         "relight_mlp_ratio_per_sample (previous kernel)": partial_jit(
             relight_per_sample, normals, albedo, light),
@@ -377,6 +388,7 @@ def relight_speed(models, normals, albedo, rounds=15):
         out[f"{name}_ms_median"] = med[name]
         out[f"{name}_over_lambertian"] = med[name] / med["relight_lambertian"]
     out["relight_lambertian_ms_median"] = med["relight_lambertian"]
+    out["relight_wrap_ggx_ms_median"] = med["relight_wrap_ggx (the default)"]
     out["render_lambertian_ms_median"] = med["render_lambertian"]
     out["relight_previous_kernel_over_new"] = (
         med["relight_mlp_ratio_per_sample (previous kernel)"] / med["relight_mlp_ratio"])
