@@ -429,7 +429,8 @@ def fit_brdf(
       (network on $I/\\rho$; same held-out error on Yale B, see docs/brdf.md),
       `"delaunay"` or `"lambertian"` (see the module docstring), or `"auto"`: the
       candidates' leave-one-light-out error on the training frames decides, per face region,
-      between Lambert's law and the best candidate (K >= 5; K + 1 fits per candidate; see
+      between Lambert's law and the best candidate, which must also have a lower Bayesian
+      information criterion than Lambert's law (K >= 5; K + 1 fits per candidate; see
       docs/brdf.md, "Choosing a model"). `model.fit.choice` says what was picked
       and why. Or a parametric model,
       a diffuse term plus a specular lobe that moves with the light (`"ggx"`, `"blinn_phong"`,
