@@ -5,7 +5,8 @@ lights.txt (not timed); then `jaxps reconstruct` runs on them twice, each in a n
 first with an empty compilation-cache folder (`JAXPS_CACHE_DIR`), then again with the folder
 the first run filled. Wall time is measured around the process; the per-stage times come from
 its summary.json, and the rest (start-up, imports, tracing, the summary) is wall minus stages.
-Also timed: `jaxps --help`, `python -c "import jaxps"`, `python -c "import jax"` and
+`jaxps relight` (the default `wrap_ggx` fit, relit images and a 36-frame GIF) runs the same
+way, cold then warm, on the 192x168 frames. Also timed: `jaxps --help`, `python -c "import jaxps"`, `python -c "import jax"` and
 `python -c "import ml_dtypes"` (best of 3; the installed ml_dtypes version is recorded).
 
 Shape buckets (when ../shared/data is there): the five Yale B subjects' frontal five-light
@@ -87,6 +88,15 @@ def main():
                              "start_up_and_rest_s": wall - sum(stages.values()),
                              "outputs": sorted(p.name for p in out.iterdir())}
             res["reconstruct"][name] = {"frames": 5, "rows": rows, "columns": cols, **runs}
+            if name == "192x168":
+                res["relight"] = {"frames": 5, "rows": rows, "columns": cols, **{
+                    run: {"wall_s": _wall(
+                        [*jaxps, "relight", *sorted(str(p) for p in frames.glob("frame_*.png")),
+                         "--lights", str(frames / "lights.txt"),
+                         "--ambient", str(frames / "ambient.png"),
+                         "--mask", str(frames / "mask.png"), "--out", str(tmp / "relit")],
+                        {**env, "JAXPS_CACHE_DIR": str(tmp / "cache_relight")})}
+                    for run in ("first (empty cache)", "second (warm cache)")}}
     res["shape_buckets"] = _buckets(env)
     path = write_json("cli", res)
     _chart(res, path.with_suffix(".png"))
@@ -96,6 +106,9 @@ def main():
                 print(f"reconstruct {name:>9}, {run:<20} {r['wall_s']:6.2f} s wall  "
                       + ", ".join(f"{k} {v:.3f}" for k, v in r["stages_s"].items())
                       + f", start-up and rest {r['start_up_and_rest_s']:.2f}")
+    for run, r in res.get("relight", {}).items():
+        if isinstance(r, dict):
+            print(f"relight 192x168, {run:<20} {r['wall_s']:6.2f} s wall")
     for name, t in res["start_up_s"].items():
         print(f"{name:>14}: {t:.3f} s")
     for mode, r in res["shape_buckets"].items():
