@@ -679,6 +679,11 @@ def test_auto_keeps_reflectance_and_drops_frame_gains(scene):
     n = valid.sum()
     rss = np.sum((lam - obs)[valid] ** 2)
     assert choice["bic"]["lambertian"] == pytest.approx(n * np.log(rss / n), rel=1e-5)
+    # an interpolant of every training sample (one parameter each) never pays for itself
+    interp = jaxps.fit_brdf(s["images"], ps.normals, ps.albedo, s["train"], mask=s["mask"],
+                            method="auto", candidates=("delaunay",), **FAST)
+    assert interp.fit.choice["bic_rejected"] == ["delaunay"], interp.fit.choice
+    assert interp.method == "lambertian"
     score = jaxps.score_relighting(model, s["truth"], ps.normals, ps.albedo, s["test"],
                                    mask=s["mask"])
     assert score.ratio["raw_30"] < 0.9, score.ratio
