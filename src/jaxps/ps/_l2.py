@@ -195,7 +195,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds):
     transposed copy), while separate planes are read in place. Shared lights take a single
     pass with $L^+$ (`_pixel_all_used`); only if some pixel in the mask dropped a sample is the
     image solved again with per-pixel weights, a real branch outside `vmap` (under `vmap` over
-    captures `lax.cond` runs both; `photometric_stereo_batch` unrolls captures instead).
+    captures `lax.cond` runs both; `photometric_stereo_batch` maps captures in sequence).
     """
     k, h, w, c = images.shape
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes

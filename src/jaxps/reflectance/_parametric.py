@@ -264,8 +264,8 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
         u_all = _half_diff(normals.reshape(-1, 3)[pix], lights)
         amp_all = RESIDUAL_BOUND * gains[:, None] * rho_d[None]
         pred = pred + amp_all * jnp.tanh(_mlp(params.residual, _scaled(u_all, box)))
-    n_params = ((diffuse != "lambert") + (specular is not None) + (k - 1) * bool(frame_gains)
-                + (specular is not None) * np.unique(region_map.reshape(-1)[pix]).size
+    lobe_params = 0 if specular is None else 1 + np.unique(region_map.reshape(-1)[pix]).size
+    n_params = ((diffuse != "lambert") + lobe_params + (k - 1) * bool(frame_gains)
                 + (0 if params.residual is None else ravel_pytree(params.residual)[0].size))
     return params, gains, steps, ok, message, pred[sel], target[sel], int(n_params)
 
