@@ -684,6 +684,19 @@ def test_auto_keeps_reflectance_and_drops_frame_gains(scene):
                             method="auto", candidates=("delaunay",), **FAST)
     assert interp.fit.choice["bic_rejected"] == ["delaunay"], interp.fit.choice
     assert interp.method == "lambertian"
+    # a parametric candidate gets the caller's `region` and `refine_normals`
+    from jaxps.reflectance._auto import bic
+
+    kw_p = dict(mask=s["mask"], region=None, refine_normals=False, **FAST)
+    auto = jaxps.fit_brdf(s["images"], ps.normals, ps.albedo, s["train"], method="auto",
+                          candidates=("wrap_ggx",), **kw_p)
+    direct = jaxps.fit_brdf(s["images"], ps.normals, ps.albedo, s["train"], method="wrap_ggx",
+                            **kw_p)
+    pred = np.asarray(jaxps.relight(direct, ps.normals, ps.albedo, s["train"]), np.float64)
+    pred *= np.asarray(direct.fit.frame_gains)[:, None, None]
+    assert direct.fit.n_params == 2 + 1 + 4  # one specular albedo: region=None
+    assert auto.fit.choice["bic"]["wrap_ggx"] == pytest.approx(
+        bic(pred, obs, valid, direct.fit.n_params), rel=1e-6)
     score = jaxps.score_relighting(model, s["truth"], ps.normals, ps.albedo, s["test"],
                                    mask=s["mask"])
     assert score.ratio["raw_30"] < 0.9, score.ratio

@@ -511,7 +511,8 @@ def fit_brdf(
                    "support_deg": support_deg, "min_count": min_count,
                    "lambertian_base": lambertian_base, "use_xy": use_xy, "solver": solver,
                    "max_steps": max_steps, "saturation": saturation,
-                   "ps_method": ps_method, "frame_gains": frame_gains}
+                   "ps_method": ps_method, "frame_gains": frame_gains, "region": region,
+                   "refine_normals": refine_normals}
         return fit_auto(fit_brdf, relight, images, normals, albedo, lights, mask=mask,
                         candidates=tuple(candidates), regions=int(regions), margin=float(margin),
                         ps_method=ps_method, saturation=saturation, options=options)
