@@ -4,9 +4,12 @@ A walk-through scanner fires its lights a few milliseconds apart; a subject who 
 frames smears every normal. `estimate_shifts` measures each frame's translation against a
 reference frame by phase correlation (Kuglin & Hines 1975) on the face region, refined to
 sub-pixel accuracy by the upsampled-DFT search of Guizar-Sicairos, Thurman & Fienup, "Efficient
-subpixel image registration algorithms", Opt. Lett. 33(2), 2008 (scikit-image's
-`phase_cross_correlation`), with phase normalisation (whitened spectra), which keeps the
-albedo detail and discards most of the low-frequency shading that differs between lights. Shifts
+subpixel image registration algorithms", Opt. Lett. 33(2), 2008, with phase normalisation
+(whitened spectra), which keeps the albedo detail and discards most of the low-frequency shading
+that differs between lights. The search is scikit-image's `phase_cross_correlation` rewritten so
+that the reference frame's spectrum is computed once, the upsampled search runs in two stages
+(1/10 px, then 1/`upsample`) and the FFT sizes are trimmed to fast lengths: on five 1 MP frames
+0.13-0.2 s where scikit-image took 0.85-1.5 s (tests check both agree on Yale B frames). Shifts
 are applied by cubic-spline interpolation.
 
 Tried and dropped: correlating each frame with a rendering of the current Lambertian fit under its
@@ -60,13 +63,19 @@ def shift_frames(
     return jnp.asarray(out)
 
 
+WORK_PIXELS = 2**21  # larger correlation boxes are block-averaged down to about this size
+
+
 def _window(h, w):
-    return np.outer(np.hanning(h), np.hanning(w))
+    return np.outer(np.hanning(h), np.hanning(w)).astype(np.float32)
 
 
-def _prepare(img, box, win):
+def _prepare(img, box, win, factor):
+    """The box of `img`, block-averaged by `factor`, mean removed, Hann-windowed (float32)."""
     y0, y1, x0, x1 = box
-    crop = img[y0:y1, x0:x1].astype(np.float64)
+    crop = np.asarray(img[y0:y1, x0:x1], np.float32)
+    hh, ww = win.shape
+    crop = crop[:hh * factor, :ww * factor].reshape(hh, factor, ww, factor).mean(axis=(1, 3))
     crop = crop - crop[win > 0].mean()
     return crop * win
 
@@ -76,6 +85,45 @@ def _box(mask, pad):
     h, w = mask.shape
     return (max(ys.min() - pad, 0), min(ys.max() + pad + 1, h),
             max(xs.min() - pad, 0), min(xs.max() + pad + 1, w))
+
+
+def _upsampled_dft(spec, size, upsample, offsets):
+    """`size` x `size` samples of the inverse DFT of `spec` on a grid `upsample` times finer,
+    starting at `offsets` (fine-grid units): the matrix-product DFT of Guizar-Sicairos et al.
+    (2008), as in scikit-image's `_upsampled_dft` (two small matrix products instead of a
+    zero-padded FFT)."""
+    rows, cols = (np.exp(2j * np.pi * np.outer(np.arange(size) - offsets[a],
+                                               np.fft.fftfreq(spec.shape[a], upsample)))
+                  .astype(np.complex64) for a in (0, 1))
+    return rows @ spec @ cols.T
+
+
+def _phase_shift(ref_spec, img_spec, upsample, normalization):
+    """(dy, dx) that moves `img` onto `ref` (scikit-image's sign), from their spectra: the
+    integer peak of the (whitened) cross-correlation, then the upsampled-DFT search around it,
+    in two stages (1/10 pixel over 1.5 pixels, then 1/`upsample` over 0.15): the same peak as
+    one search at 1/`upsample` over 1.5 pixels, with 100x fewer samples."""
+    import scipy.fft
+
+    cross = ref_spec * np.conj(img_spec)
+    if normalization == "phase":
+        cross = cross / np.maximum(np.abs(cross), np.finfo(np.float32).eps)
+    corr = np.abs(scipy.fft.ifft2(cross, workers=-1))
+    shape = np.array(corr.shape)
+    peak = np.array(np.unravel_index(np.argmax(corr), corr.shape), np.float64)
+    wrap = peak > shape // 2
+    peak[wrap] -= shape[wrap]
+    span = 1.5
+    for up in sorted({min(upsample, 10), upsample}):
+        if up <= 1:
+            continue
+        peak = np.round(peak * up) / up
+        size = int(np.ceil(up * span))
+        centre = np.fix(size / 2.0)
+        fine = np.abs(_upsampled_dft(cross, size, up, centre - peak * up))
+        peak = peak + (np.array(np.unravel_index(np.argmax(fine), fine.shape)) - centre) / up
+        span = 1.5 / up
+    return peak
 
 
 def estimate_shifts(
@@ -109,7 +157,6 @@ def estimate_shifts(
     if sel.shape != (h, w) or not sel.any():
         raise ValueError(f"mask must be a non-empty (H, W) = {(h, w)} array")
     box = _box(sel, pad=4)
-    win = _window(box[1] - box[0], box[3] - box[2])
     if isinstance(reference, (int, np.integer)):
         if not 0 <= reference < k:
             raise ValueError(f"reference must index a frame in [0, {k}), got {reference}")
@@ -118,17 +165,24 @@ def estimate_shifts(
         refs = np.asarray(reference, np.float64)
         if refs.shape != grey.shape:
             raise ValueError(f"reference images must have shape {grey.shape}, got {refs.shape}")
-    from skimage.registration import phase_cross_correlation
+    import scipy.fft
 
+    # Large boxes are block-averaged to about WORK_PIXELS: the motion worth undoing is pixels,
+    # and the correlation of a 1 MP face needs no more detail than that (5 x 1 MP: 0.85 s with
+    # scikit-image's phase_cross_correlation at full size).
+    factor = max(1, round(np.sqrt((box[1] - box[0]) * (box[3] - box[2]) / WORK_PIXELS)))
+    # sides trimmed to lengths with small prime factors, which the FFT takes fastest
+    win = _window(*(scipy.fft.prev_fast_len((box[j + 1] - box[j]) // factor) for j in (0, 2)))
+    shared = isinstance(reference, (int, np.integer))
+    spectrum = lambda img: scipy.fft.fft2(_prepare(img, box, win, factor), workers=-1)
+    ref_spec = spectrum(refs[0]) if shared else None
     shifts = np.zeros((k, 2))
     for i in range(k):
-        a = _prepare(refs[i], box, win)
-        b = _prepare(grey[i], box, win)
+        a = ref_spec if shared else spectrum(refs[i])
+        b = spectrum(grey[i])
         if not (np.any(a) and np.any(b)):
             continue
-        shift, _, _ = phase_cross_correlation(a, b, upsample_factor=upsample,
-                                              normalization=normalization)
-        shifts[i] = -shift  # skimage returns the shift that registers b onto a
+        shifts[i] = -factor * _phase_shift(a, b, upsample, normalization)
     return shifts
 
 
