@@ -53,6 +53,9 @@ ADDED = {
 # before, kept for Cao et al.'s figures to the digit); only that entry of the snapshot rewritten.
 # Issue 16: `BRDFFit` gained `n_params` (the parameter count of `method="auto"`'s information
 # criterion); only that entry of the snapshot rewritten.
+# Issue 17: `load_capture` and `jaxps.cli.reconstruct` gained `register` (motion between frames
+# measured and undone by default) and `Capture` the fields `shifts` and `registered`; those three
+# entries rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser")
 
 

@@ -89,3 +89,94 @@ def test_large_frames_block_averaged(monkeypatch):
     moved = np.stack([_fourier_shift(im, s) for im, s in zip(images, SHIFTS)]).astype(np.float32)
     shifts = jaxps.estimate_shifts(moved, mask=scene.mask)
     assert np.max(np.abs(shifts - SHIFTS)) < 0.25
+
+
+def _write_frames(tmp_path, frames):
+    import cv2
+
+    paths = []
+    for k, f in enumerate(frames):
+        paths.append(tmp_path / f"f{k}.png")
+        cv2.imwrite(str(paths[-1]), np.round(np.clip(f, 0, 1) * 65535).astype(np.uint16))
+    return paths
+
+
+def test_load_capture_undoes_motion(tmp_path):
+    """Frames written to files after known sub-pixel moves: `load_capture` measures the moves
+    against the frontal frame, moves the frames back, leaves the edge rows it had to invent out
+    of the mask, and PS then matches the still frames; `register=False` keeps the smear."""
+    from jaxps.acquisition import load_capture
+
+    scene = face_scene(96)
+    images = np.asarray(scene.images) * 0.8
+    moved = np.stack([_fourier_shift(im, s) for im, s in zip(images, SHIFTS)])
+    paths = _write_frames(tmp_path, moved)
+    lights = np.asarray(scene.lights)
+    cap = load_capture(paths, lights=lights, linearize="none", intensities="none")
+    assert cap.registered and int(np.argmax(lights[:, 2])) == 0
+    assert np.max(np.abs(cap.shifts - SHIFTS)) < 0.1
+    border = int(np.ceil(np.abs(SHIFTS).max()))
+    assert not cap.mask[:border].any() and not cap.mask[:, -border:].any()
+    assert cap.mask[border:-border, border:-border].all()
+    still = jaxps.photometric_stereo(images, lights, mask=scene.mask)
+    inner = ndimage.binary_erosion(np.asarray(scene.mask), iterations=4)
+    fixed = jaxps.photometric_stereo(cap.images, lights, mask=cap.mask)
+    err = jaxps.evaluate.angular_stats(fixed.normals, still.normals, mask=inner)
+    assert err["median_deg"] < 0.5
+    plain = load_capture(paths, lights=lights, linearize="none", intensities="none",
+                         register=False)
+    assert plain.shifts is None and not plain.registered and plain.mask.all()
+    err = jaxps.evaluate.angular_stats(
+        jaxps.photometric_stereo(plain.images, lights, mask=plain.mask).normals, still.normals,
+        mask=inner)
+    assert err["median_deg"] > 3
+
+
+def test_load_capture_leaves_still_and_far_moved_frames(tmp_path, caplog):
+    """Still frames measure below MIN_SHIFT and stay as read; a frame 6 px away is logged and
+    nothing is moved."""
+    from jaxps.acquisition import load_capture
+    from jaxps.acquisition._capture import MIN_SHIFT
+
+    scene = face_scene(64)
+    images = np.asarray(scene.images) * 0.8
+    lights = np.asarray(scene.lights)
+    still = load_capture(_write_frames(tmp_path, images), lights=lights, linearize="none",
+                         intensities="none")
+    assert not still.registered and np.abs(still.shifts).max() < MIN_SHIFT
+    np.testing.assert_allclose(still.images, images, atol=1e-4)
+    far = images.copy()
+    far[2] = _fourier_shift(images[2], (6.0, 0.0))
+    (tmp_path / "far").mkdir()
+    with caplog.at_level("WARNING", logger="jaxps"):
+        cap = load_capture(_write_frames(tmp_path / "far", far), lights=lights,
+                           linearize="none", intensities="none")
+    assert not cap.registered and abs(cap.shifts[2, 0] - 6.0) < 0.2
+    assert "f2.png" in caplog.text and "left unregistered" in caplog.text
+
+
+def test_registration_helps_five_light_faces(data):
+    """yaleB04, whose frames moved up to 2.8 px: against semi-calibrated PS over the 19
+    registered lights within 30 degrees, the five scanner lights give a lower median error when
+    `load_capture` registers them (measured 2.86 vs 4.95 degrees)."""
+    from benchmarks.bench_faces import off_axis
+
+    from jaxps.acquisition import load_capture
+
+    folder = data / "yaleb" / "yaleB04"
+    ambient = folder / "yaleB04_P00_Ambient.pgm"
+    within = [p for p in sorted(folder.glob("yaleB04_P00A*.pgm"))
+              if off_axis(*jaxps.parse_yale_name(p.name)) <= 30]
+    many = load_capture(within, yale_names=True, ambient=ambient, intensities="none")
+    assert many.registered
+    ref = jaxps.photometric_stereo(many.images, many.lights, method="semi_calibrated")
+    ok = np.asarray(ref.status == 0) & np.asarray(ref.albedo > 0.05) & many.mask
+    five = [folder / f"yaleB04_P00A{n}.pgm"
+            for n in ("+000E+00", "+025E+00", "-025E+00", "+000E+20", "+000E-20")]
+    err = {}
+    for register in (True, False):
+        cap = load_capture(five, yale_names=True, ambient=ambient, register=register)
+        res = jaxps.photometric_stereo(cap.images, cap.lights)
+        err[register] = jaxps.evaluate.angular_stats(res.normals, ref.normals,
+                                                     mask=ok & cap.mask)["median_deg"]
+    assert err[True] < err[False] - 1.0, err

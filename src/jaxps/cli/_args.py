@@ -14,6 +14,13 @@ __all__ = ["add_light_args", "demo_parser", "reconstruct_parser", "relight_parse
            "report_parser"]
 
 
+def add_register_arg(p) -> None:
+    p.add_argument("--no-register", dest="register", action="store_false",
+                   help="use the frames where they are; by default motion between frames "
+                   "(0.25-4 px against the frame lit closest to the view axis) is measured and "
+                   "undone (see load_capture)")
+
+
 def add_light_args(p) -> None:
     """The options every frame-reading subcommand shares: where lights come from, ambient."""
     g = p.add_mutually_exclusive_group(required=True)
@@ -50,6 +57,7 @@ def reconstruct_parser(sub) -> None:
                    help="use the frames as read (same as --intensities none)")
     p.add_argument("--equalize", dest="intensities", action="store_const", const="mean",
                    help="plain mean equalisation (same as --intensities mean)")
+    add_register_arg(p)
     p.add_argument("--shadow-threshold", type=float, default=None,
                    help="drop samples below this intensity from each pixel's solve")
     p.add_argument("--method", default="l2", help="photometric-stereo method (jaxps.PS_METHODS)")
@@ -118,6 +126,7 @@ def relight_parser(sub) -> None:
     p.add_argument("--check-quality", action="store_true",
                    help="drop frames flagged by jaxps.check_frames (e.g. interlace-combed) "
                    "before fitting")
+    add_register_arg(p)
     p.add_argument("--light", action="append", default=[], metavar="AZ,EL",
                    help="a new light, azimuth,elevation in degrees (Yale B); repeatable; write "
                    "--light=-50,0 when the azimuth is negative")

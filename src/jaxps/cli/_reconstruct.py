@@ -70,12 +70,15 @@ def reconstruct(
     check_quality: bool = False,
     obj: bool = False,
     points: bool = False,
+    register: bool = True,
 ) -> dict:
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
     `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
     `"dropped_frames"` in the summary). `intensities`: see `load_capture` (the summary's
     `"intensities"` holds the method and the per-frame estimates, `"gains"` their inverses).
+    `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
+    the measured shifts and whether the frames were moved).
     `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`)."""
     import jax
 
@@ -85,8 +88,8 @@ def reconstruct(
     try:
         cap = stages.run("load frames", load_capture, frames, lights=lights,
                          yale_names=yale_names, ambient=ambient, mask=mask,
-                         intensities=intensities,
-                         crop_face=crop_face, check_quality=check_quality)
+                         intensities=intensities, crop_face=crop_face,
+                         check_quality=check_quality, register=register)
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
 
@@ -128,6 +131,7 @@ def reconstruct(
         "gains": cap.gains.round(6).tolist(),
         "intensities": {"method": cap.intensity_method,
                         "per_frame": np.asarray(cap.intensities).round(6).tolist()},
+        "motion": _motion(cap),
         "method": method,
         "integration": integration,
         "mask_pixels": int(cap.mask.sum()),
@@ -150,6 +154,12 @@ def reconstruct(
     return summary
 
 
+def _motion(cap) -> dict:
+    """The summary's record of `load_capture`'s motion step."""
+    shifts = None if cap.shifts is None else np.asarray(cap.shifts).round(3).tolist()
+    return {"shifts_px": shifts, "registered": bool(cap.registered)}
+
+
 def run(args) -> int:
     if len(args.frames) > 1 and all(os.path.isdir(f) for f in args.frames):
         return _run_many(args)
@@ -159,10 +169,13 @@ def run(args) -> int:
         intensities=args.intensities,
         shadow_threshold=args.shadow_threshold, method=args.method,
         integration=args.integration, report=args.report, check_quality=args.check_quality,
-        obj=args.obj, points=args.points,
+        obj=args.obj, points=args.points, register=args.register,
     )
     if summary["dropped_frames"]:
         print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))
+    if summary["motion"]["registered"]:
+        largest = np.abs(np.asarray(summary["motion"]["shifts_px"])).max()
+        print(f"reconstruct: frames moved up to {largest:.2f} px; registered")
     counts = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
     size = summary["size"]
     print(f"reconstructed {size['frames']} frames of {size['height']}x{size['width']} "
@@ -247,7 +260,7 @@ def _run_many(args) -> int:
     (named in the table), else 0."""
     load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
                         mask=args.mask, crop_face=args.crop_face,
-                        intensities=args.intensities)
+                        intensities=args.intensities, register=args.register)
     results, rows = reconstruct_many(args.frames, method=args.method,
                                      check_quality=args.check_quality, **load_options)
     os.makedirs(args.out, exist_ok=True)

@@ -49,6 +49,7 @@ def relight_capture(
     max_steps: int = 30,
     seed: int = 0,
     check_quality: bool = False,
+    register: bool = True,
 ) -> dict:
     """Fit `method` to a capture and write relit PNGs, `relight.gif` and `relight.json` to `out`.
 
@@ -65,6 +66,7 @@ def relight_capture(
     - `n_samples`, `max_steps`, `seed`: passed to `fit_brdf` (`key=jax.random.key(seed)`).
     - `check_quality`: drop the frames `jaxps.check_frames` flags (corrupt, badly exposed or
       inconsistent) before fitting; they are listed under `"dropped_frames"` in the summary.
+    - `register`: undo motion between frames (see `load_capture`; `"motion"` in the summary).
 
     **Returns:** the summary written to `relight.json` (fit report, files, timings).
     """
@@ -80,7 +82,7 @@ def relight_capture(
     times = {}
     t = time.perf_counter()
     cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask,
-                       check_quality=check_quality)
+                       check_quality=check_quality, register=register)
     if cap.lights is None:
         raise ValueError("no lights: give --lights FILE or --yale-names")
     images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
@@ -116,6 +118,8 @@ def relight_capture(
     fit = model.fit._asdict()
     summary = {
         "frames": list(cap.names), "dropped_frames": list(cap.dropped), "method": method,
+        "motion": {"shifts_px": None if cap.shifts is None
+                   else np.asarray(cap.shifts).round(3).tolist(), "registered": cap.registered},
         "fit": fit,
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
         "mask_pixels": int(fit_mask.sum()), "png_scale": scale,
@@ -139,7 +143,7 @@ def run(args) -> int:
         ambient=args.ambient, mask=args.mask, method=args.method, new_lights=new_lights,
         circle_zenith_deg=args.circle_zenith, circle_frames=args.circle_frames,
         n_samples=args.samples, max_steps=args.max_steps, seed=args.seed,
-        check_quality=args.check_quality)
+        check_quality=args.check_quality, register=args.register)
     if s["dropped_frames"]:
         print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
     fit = s["fit"]
