@@ -70,10 +70,17 @@ METHODS = {  # name -> fit_brdf keywords
 }
 
 
+# Set by `--register` (bench_relight.py, relight_bound.py): every frame is moved onto the (0,0)
+# frame before use. The subjects moved 0.4-3.5 px between frames (jaxps.estimate_shifts).
+REGISTER = False
+
+
 def load_yale(subject: str):
     """(images (K, H, W) in [0, 1] ambient-subtracted, (azimuth, elevation) list, (K,) bool of
     the frames `jaxps.check_frames` passes) of a subject. The check runs on the frames within
-    60 deg of the view axis (the ones used here); farther ones are counted as passed, unused."""
+    60 deg of the view axis (the ones used here); farther ones are counted as passed, unused.
+    With `REGISTER`, the frames within 60 deg are first moved onto the (0,0) frame (measured
+    by `jaxps.estimate_shifts`, undone by `jaxps.shift_frames`; farther frames as read)."""
     folder = DATA / "yaleb" / subject
     ambient = cv2.imread(str(folder / f"{subject}_P00_Ambient.pgm"), cv2.IMREAD_UNCHANGED)
     images, angles = [], []
@@ -85,6 +92,11 @@ def load_yale(subject: str):
         images.append((raw - ambient.astype(np.float32)) / 255.0)
         angles.append(ae)
     images = np.stack(images)
+    if REGISTER:
+        near = [i for i, (a, e) in enumerate(angles)
+                if np.cos(np.radians(a)) * np.cos(np.radians(e)) >= np.cos(np.radians(60))]
+        shifts = jaxps.estimate_shifts(images[near], reference=near.index(angles.index((0, 0))))
+        images[near] = np.asarray(jaxps.shift_frames(images[near], -shifts))
     return images, angles, clean_frames(images, angles, subject)
 
 

@@ -3,7 +3,7 @@
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_relight.py \
         [--subjects yaleB01 ...] [--models lambertian mlp ...] [--candidates mlp ...] \
-        [--n-samples 20000] [--max-steps 15]
+        [--n-samples 20000] [--max-steps 15] [--register]
 
 Writes benchmarks/results/relight.json, relight.png and docs/images/relight_<subject>.png.
 Protocol (`jaxps.score_relighting`): per subject, train on the scanner's five lights "cross"
@@ -11,7 +11,9 @@ Protocol (`jaxps.score_relighting`): per subject, train on the scanner's five li
 normals and albedo by L2 photometric stereo on those frames, face mask as in bench_brdf.py;
 every other clean light within 60 degrees is held out. A model name is a `fit_brdf` method
 (any of `jaxps.BRDF_METHODS`, including ones added later) or a variant of bench_brdf.py's
-METHODS (e.g. `mlp_loo`); every fit uses `--n-samples` and `--max-steps`.
+METHODS (e.g. `mlp_loo`); every fit uses `--n-samples` and `--max-steps`. `--register`: every
+frame within 60 degrees is first moved onto the (0,0) frame (the subjects moved 0.4-3.5 px
+between frames; `bench_brdf.load_yale`), training and held-out frames alike.
 
 `auto`: the model `fit_brdf(method="auto", candidates=--candidates)` with the library's
 defaults. Besides, the leave-one-light-out folds (`lolo_folds`, the candidates fitted on four
@@ -40,11 +42,13 @@ import jaxps
 from jaxps.reflectance._auto import choose_regions, lolo_folds
 
 try:
+    from benchmarks import bench_brdf
     from benchmarks.bench_brdf import METHODS, cases
 except ImportError:  # run as a script
     import sys
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks import bench_brdf
     from benchmarks.bench_brdf import METHODS, cases
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -241,6 +245,8 @@ def main():
     parser.add_argument("--n-samples", type=int, default=20_000)
     parser.add_argument("--max-steps", type=int, default=15)
     parser.add_argument("--no-pictures", action="store_true")
+    parser.add_argument("--register", action="store_true",
+                        help="move every frame onto the (0,0) frame first")
     parser.add_argument("--quick", action="store_true",
                         help="yaleB01, lambertian and mlp, 3,000 samples, 3 LM steps, no pictures:"
                         " stored under 'quick' in relight.json, the other figures kept")
@@ -254,6 +260,7 @@ def main():
     if unknown:
         parser.error(f"unknown models {unknown}: use jaxps.BRDF_METHODS or {list(METHODS)}")
     OUT.mkdir(parents=True, exist_ok=True)
+    bench_brdf.REGISTER = args.register
     t0 = time.perf_counter()
     rows, shown = [], []
     for c in cases(tuple(args.subjects), ("cross",)):
@@ -266,7 +273,8 @@ def main():
            "settings": {"train_set": "cross", "n_samples": args.n_samples,
                         "max_steps": args.max_steps, "key": 0, "models": args.models,
                         "candidates": args.candidates, "regions_grid": list(REGIONS),
-                        "margin_grid": list(MARGINS), "picture_light": list(PICTURE_LIGHT)},
+                        "margin_grid": list(MARGINS), "picture_light": list(PICTURE_LIGHT),
+                        "registered": args.register},
            "subjects": rows}
     if "auto" in args.models and len(rows) > 1:
         res["auto_loso"] = loso(rows)

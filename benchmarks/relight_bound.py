@@ -1,6 +1,6 @@
 """How far below Lambert can relighting from five frames go? Two probes on the shared Yale B faces.
 
-    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/relight_bound.py
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/relight_bound.py [--register]
 
 Same cases as bench_relight.py ("cross" training lights less flagged frames, L2 normals and
 albedo from them, the face mask; every other clean light within 30 degrees held out), scored
@@ -17,7 +17,8 @@ image), as a ratio to Lambert's law:
   `SIGMAS`, per pixel): does the misfit at a training light carry over to a light 5-25 degrees
   away?
 
-Writes benchmarks/results/relight_bound.json.
+Writes benchmarks/results/relight_bound.json (with `--register`, every frame moved onto the
+(0,0) frame first, as in bench_relight.py: relight_bound_registered.json).
 """
 
 from __future__ import annotations
@@ -62,6 +63,16 @@ def subject_row(c):
 
 
 def main():
+    import argparse
+
+    from benchmarks import bench_brdf
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--register", action="store_true",
+                        help="move every frame onto the (0,0) frame first")
+    args = parser.parse_args()
+    bench_brdf.REGISTER = args.register
+    out = OUT.with_name("relight_bound_registered.json") if args.register else OUT
     rows = {}
     for c in cases(SUBJECTS, ["cross"]):
         rows[c.subject] = subject_row(c)
@@ -69,7 +80,8 @@ def main():
     keys = [k for k in rows[SUBJECTS[0]] if k.endswith("_ratio")]
     mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in keys}
     print("mean", {k: round(v, 3) for k, v in mean.items()})
-    OUT.write_text(json.dumps({"subjects": rows, "mean": mean}, indent=1) + "\n")
+    out.write_text(json.dumps({"subjects": rows, "mean": mean, "registered": args.register},
+                              indent=1) + "\n")
 
 
 if __name__ == "__main__":
