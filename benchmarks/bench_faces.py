@@ -21,8 +21,9 @@ For each shared Yale B subject (yaleB01..05, ambient frame subtracted):
   dropped (yaleB02 keeps four), each per-frame intensity handling in `CANDIDATES`, then L2 PS.
 
 The error of a candidate is the median angular error against the reference over the face
-(reference albedo > 0.05 and every reference/half solve OK) less the pixels the candidate itself
-masked out (`coverage` is the fraction kept), written next to the subject's floor.
+(reference albedo > 0.05, every reference/half solve OK, 4 px or more from the image's edge)
+less any pixel the candidate itself masked out (`coverage` is the fraction kept), written next
+to the subject's floor.
 
 The subjects moved between frames (0.4-3.5 px within 50 degrees, measured by
 `jaxps.estimate_shifts` against the (0,0) frame). The issue's protocol ignores that: reference,
@@ -151,6 +152,18 @@ def frame_residuals(frames, keys, ref, ok):
     return out
 
 
+def inner(res):
+    """Every pixel at least `MAX_SHIFT` from the image's edge: a registered frame repeats its
+    edge there, and `load_capture` masks up to that many rows and columns, so every figure
+    leaves them out alike (registered or not)."""
+    from jaxps.acquisition._capture import MAX_SHIFT
+
+    b = int(np.ceil(MAX_SHIFT))
+    keep = np.zeros(res.status.shape, bool)
+    keep[b:-b, b:-b] = True
+    return keep
+
+
 def references(frames):
     """Reference, half-set floors, evaluation mask and frame residuals of one subject.
 
@@ -163,7 +176,7 @@ def references(frames):
     within = sorted(k for k in frames if off_axis(*k) <= MAX_ANGLE)
     keys, dropped = clean(frames, within)
     ref = semi(frames, keys)
-    ref_ok = np.asarray(ref.status == 0) & np.asarray(ref.albedo > ALBEDO_MIN)
+    ref_ok = np.asarray(ref.status == 0) & np.asarray(ref.albedo > ALBEDO_MIN) & inner(ref)
     floor, halves, ok = half_floor(frames, keys, ref_ok)
     variants = {"elevation_order": half_floor(frames, keys, ref_ok, "elevation")[0],
                 "without_0_+45": (half_floor(frames, [k for k in keys if k != (0, 45)], ref_ok)[0]
@@ -173,7 +186,8 @@ def references(frames):
     loose = [k for k in within if f"{k[0]:+d},{k[1]:+d}" not in corrupt]
     if loose != keys:
         lref = semi(frames, loose)
-        lref_ok = np.asarray(lref.status == 0) & np.asarray(lref.albedo > ALBEDO_MIN)
+        lref_ok = (np.asarray(lref.status == 0) & np.asarray(lref.albedo > ALBEDO_MIN)
+                   & inner(lref))
         lfloor = half_floor(frames, loose, lref_ok)[0]
         variants["inconsistent_frames_kept"] = {
             **lfloor, "lights": len(loose),

@@ -180,3 +180,15 @@ def test_registration_helps_five_light_faces(data):
         err[register] = jaxps.evaluate.angular_stats(res.normals, ref.normals,
                                                      mask=ok & cap.mask)["median_deg"]
     assert err[True] < err[False] - 1.0, err
+
+
+def test_still_real_objects_not_registered(data):
+    """The psm objects did not move: their 12 frames under lights up to 45 degrees apart read
+    as at most 0.08 px of motion (owl: 0.11 px), below `MIN_SHIFT`, so nothing is moved."""
+    from jaxps.acquisition import load_capture
+    from jaxps.acquisition._capture import MIN_SHIFT
+
+    folder = data / "psm" / "cat"
+    cap = load_capture(folder, lights=data / "psm" / "lights.txt", mask=folder / "cat.mask.png",
+                       intensities="none")
+    assert not cap.registered and np.abs(cap.shifts).max() < 0.5 * MIN_SHIFT
