@@ -333,6 +333,29 @@ def cand_default_pipeline(images, lights, ctx):
                                          4).tolist(), "dropped": list(cap.dropped)}
 
 
+def cand_cli(intensities="frontal"):
+    """`jaxps reconstruct FRAMES --yale-names --ambient AMBIENT --out DIR` and no other option
+    (issue 17's command line; run in this process), normals read back from `normals.png`.
+    `intensities="mean"`: the same with `--equalize` (the seeds' mean equalisation), the
+    figure the default must not be worse than. Neither drops yaleB02's combed frame (that
+    takes `--check-quality`)."""
+    def run(images, lights, ctx):
+        import tempfile
+
+        from jaxps.cli import reconstruct
+        from jaxps.report._writers import read_normal_map
+
+        with tempfile.TemporaryDirectory() as out:
+            summary = reconstruct([str(p) for p in ctx["paths"]], out, yale_names=True,
+                                  ambient=str(ctx["ambient"]), intensities=intensities)
+            normals = read_normal_map(pathlib.Path(out) / "normals.png")
+            status = np.load(pathlib.Path(out) / "status.npy")
+        res = jaxps.PSResult(jnp.asarray(normals), None, jnp.asarray(status), None, None)
+        return res, {"intensities": np.round(summary["intensities"]["per_frame"], 4).tolist(),
+                     "motion": summary["motion"]}
+    return run
+
+
 def cand_unregistered(images, lights, ctx):
     """`"frontal"` on the five frames as read (with `--register`, against the registered
     reference: what undoing the motion is worth; otherwise the same as `"frontal"`)."""
@@ -361,6 +384,8 @@ CANDIDATES = {
     "frontal_tilt_x_loo": cand_tilt("x"),
     "frontal_tilt_xy_loo": cand_tilt("xy"),
     "default_load_capture": cand_default_pipeline,
+    "cli_reconstruct": cand_cli(),
+    "cli_reconstruct_equalize": cand_cli("mean"),
     "frontal_unregistered": cand_unregistered,
     "oracle_reference_intensities": cand_oracle,
     "oracle_mean_normal": cand_tilt("xy", faces="own"),
@@ -536,6 +561,11 @@ def main(argv=None):
     out["worse_than_mean_equalisation"] = {
         name: [s for s, r in out["subjects"].items()
                if r["candidates"][name]["median_deg"] > mean_err[s]] for name in CANDIDATES}
+    # The command line against itself with --equalize (same frames, combed one included).
+    out["cli_worse_than_cli_equalize"] = [
+        s for s, r in out["subjects"].items()
+        if r["candidates"]["cli_reconstruct"]["median_deg"]
+        > r["candidates"]["cli_reconstruct_equalize"]["median_deg"]]
     out["median_floor_variants_deg"] = {
         v: float(np.median([r["floor_variants"][v]["median_deg"]
                             for r in out["subjects"].values()]))

