@@ -53,11 +53,15 @@ for path in sorted(folder.glob("yaleB01_P00A*.pgm")):
     light = jaxps.lights_from_angles([az], [el])[0]
     if (az, el) not in train and np.degrees(np.arccos(light[2])) <= 30:
         tests.append(path)
-held_out = load_capture(tests, yale_names=True, ambient=folder / "yaleB01_P00_Ambient.pgm")
-relit = np.asarray(jaxps.render_lambertian(result.normals, result.albedo, held_out.lights))
+# Loaded with the training frames, so that all are moved onto the same (frontal) frame.
+everything = load_capture(frames + tests, yale_names=True,
+                          ambient=folder / "yaleB01_P00_Ambient.pgm")
+held_out = everything.images[len(frames):]
+relit = np.asarray(jaxps.render_lambertian(result.normals, result.albedo,
+                                           everything.lights[len(frames):]))
 
 # RMSE in grey levels (0-255) over the face, per held-out light.
-diff = (relit - held_out.images)[:, face] * 255
+diff = (relit - held_out)[:, face] * 255
 rmse = np.sqrt(np.mean(diff**2, axis=1))
 print(f"relighting {len(tests)} held-out lights within 30 deg: RMSE {rmse.mean():.1f} grey "
       f"levels (range {rmse.min():.1f}-{rmse.max():.1f})")
@@ -79,7 +83,7 @@ panels = [
     ("albedo", np.asarray(result.albedo), "gray"),
     ("height, shaded", np.where(face, shaded, 1), "gray"),
     (f"relit: {tests[show].stem[-8:]}", relit[show], "gray"),
-    ("real photo, same light", held_out.images[show], "gray"),
+    ("real photo, same light", held_out[show], "gray"),
 ]
 fig, axes = plt.subplots(1, len(panels), figsize=(2.2 * len(panels), 2.8))
 for ax, (title, img, cmap) in zip(axes, panels):
