@@ -75,7 +75,7 @@ def test_shifts_match_scikit_image_on_real_frames(data):
                                                 upsample_factor=100, normalization="phase")[0]
                        for f in frames])
     assert np.abs(theirs).max() > 1.0  # the subject moved
-    # float32 spectra (XLA) against scikit-image's float64: a few 1/100-px steps apart
+    # float32 spectra against scikit-image's float64: a few 1/100-px steps apart at most
     np.testing.assert_allclose(ours, theirs, atol=0.03)
 
 
