@@ -4,8 +4,8 @@
 
 - **Measured motion** (`jaxps.estimate_shifts` against the frame lit closest to the view axis):
   every Yale B frame within 50 degrees of the view axis (the faces moved), and the 12 frames of
-  each psm object (still scenes: what the estimate reads as motion where there is none, which
-  sets `load_capture`'s `MIN_SHIFT`).
+  each psm object and of `jaxps demo`'s rendered face at 1280x1024 (still scenes: what the
+  estimate reads as motion where there is none, which sets `load_capture`'s `MIN_SHIFT`).
 - **Integrability without a reference**: the normalised curl of the five-light normals
   (`bench_faces._curl_ratio`: the cross lights, frontal intensities, L2 PS) with the frames as
   read and registered (`load_capture`'s default): normals from frames that do not line up mix
@@ -86,9 +86,21 @@ def five_light_curl():
 
 
 def still_motion():
+    import subprocess
+    import tempfile
+
     from jaxps.acquisition import load_capture
 
     out = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        subprocess.run([sys.executable, "-m", "jaxps", "demo", "--size", "1024", "--width", "1280",
+                        "--out", tmp], check=True, capture_output=True)
+        frames = pathlib.Path(tmp) / "frames"
+        cap = load_capture(sorted(frames.glob("frame_*.png")), lights=frames / "lights.txt",
+                           ambient=frames / "ambient.png", mask=frames / "mask.png")
+        out["jaxps demo 1280x1024"] = {"frames": len(cap.names),
+                                       "max_px": float(np.abs(cap.shifts).max()),
+                                       "registered": cap.registered}
     for obj in ("cat", "owl"):
         folder = data_dir() / "psm" / obj
         cap = load_capture(folder, lights=data_dir() / "psm" / "lights.txt",

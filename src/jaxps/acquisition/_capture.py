@@ -21,20 +21,17 @@ from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ._face import bucket_box, crop, detect_face
 from ._files import PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
-from ._register import _estimate, estimate_shifts
+from ._register import estimate_shifts
 from ._stack import mask_from_intensity, subtract_ambient
 
 __all__ = ["Capture", "load_capture"]
 
 # Motion that `load_capture(register=True)` undoes, in pixels. Below MIN_SHIFT the frames are left
-# as read: on static scenes the measured shifts are noise (at most 0.12 px on the psm objects'
-# 12 frames, 0.01 px on rendered faces), while the Yale B faces moved up to 1.7-3.5 px.
-# Above MAX_SHIFT a translation is not a good enough model (the subject has probably turned too).
-MIN_SHIFT, MAX_SHIFT = 0.25, 4.0
-# The first look at the motion is on frames block-averaged to about this many pixels (about 0.2 px
-# error when a 1 MP face is averaged 2 x 2); only when it sees MIN_SHIFT / 2 or more are the
-# shifts measured again at full size (0.2 s for five 1 MP frames).
-COARSE_PIXELS = 2**18
+# as read: on still scenes the estimate reads shading changes as motion, up to 0.12 px on the psm
+# objects' 12 frames and 0.23 px on the rendered demo face at 1 MP, while the Yale B faces moved
+# up to 1.7-3.5 px (0.9-2.0 px within the five scanner frames). Above MAX_SHIFT a translation is
+# not a good enough model (the subject has probably turned as well).
+MIN_SHIFT, MAX_SHIFT = 0.5, 4.0
 
 
 class Capture(NamedTuple):
@@ -111,7 +108,7 @@ def load_capture(
       flagged ones (logged on logger `"jaxps"`; `ValueError` if fewer than 3 remain).
     - `register`: measure each frame's motion against the frame lit closest to the view axis
       (`jaxps.estimate_shifts` on the given mask's box, else the whole frame) and, when the
-      largest shift is between `MIN_SHIFT` = 0.25 px and `MAX_SHIFT` = 4 px, move the frames
+      largest shift is between `MIN_SHIFT` = 0.5 px and `MAX_SHIFT` = 4 px, move the frames
       back (cubic spline) and leave a border as wide as that shift out of the mask. Larger
       motion is logged and left alone. The Yale B faces moved up to 1.7-3.5 px between frames;
       registering their five scanner frames lowered the median normal error by 0.5-1.8 degrees
@@ -224,9 +221,7 @@ def _register(images, saturated, lights, mask, names):
     the frames were left as they were."""
     reference = 0 if lights is None else int(np.argmax(np.asarray(lights)[:, 2]))
     grey = images if images.ndim == 3 else images.mean(axis=-1)
-    shifts = _estimate(grey, reference, mask, 100, "phase", COARSE_PIXELS)
-    if np.max(np.abs(shifts)) >= MIN_SHIFT / 2 and grey[0].size > COARSE_PIXELS:
-        shifts = estimate_shifts(grey, reference=reference, mask=mask)
+    shifts = estimate_shifts(grey, reference=reference, mask=mask)
     largest = float(np.max(np.abs(shifts)))
     if largest < MIN_SHIFT:
         return images, saturated, shifts, 0

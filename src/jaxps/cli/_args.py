@@ -17,7 +17,7 @@ __all__ = ["add_light_args", "demo_parser", "reconstruct_parser", "relight_parse
 def add_register_arg(p) -> None:
     p.add_argument("--no-register", dest="register", action="store_false",
                    help="use the frames where they are; by default motion between frames "
-                   "(0.25-4 px against the frame lit closest to the view axis) is measured and "
+                   "(0.5-4 px against the frame lit closest to the view axis) is measured and "
                    "undone (see load_capture)")
 
 
