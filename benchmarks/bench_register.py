@@ -149,10 +149,10 @@ def main():
     res = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_register.py",
            "environment": environment()}
     res["yaleb_within_50deg"] = yale_motion()
-    res["psm_still"] = still_motion()
+    res["still_scenes"] = still_motion()
     res["five_light_curl_ratio"] = five_light_curl()
     res["speed_five_frames"] = speed()
-    for key in ("yaleb_within_50deg", "psm_still", "five_light_curl_ratio", "speed_five_frames"):
+    for key in ("yaleb_within_50deg", "still_scenes", "five_light_curl_ratio", "speed_five_frames"):
         for name, row in res[key].items():
             print(key, name, {k: round(v, 3) if isinstance(v, float) else v
                               for k, v in row.items()}, flush=True)
