@@ -10,7 +10,7 @@ that differs between lights. The search is scikit-image's `phase_cross_correlati
 for speed: the reference spectrum is computed once, the upsampled search runs in two stages
 (1/10 px, then 1/`upsample`), and FFT sizes are trimmed to 2-3-5-smooth lengths. It uses
 `numpy.fft`, which needs no import beyond numpy: `import scipy.fft` alone took 0.32 s of every
-command-line run, and a jitted JAX version 0.25 s of tracing and lowering per process.
+command-line run, and a jitted JAX version paid tracing and lowering in every new process.
 Shifts are applied by cubic-spline interpolation.
 
 Tried and dropped: correlating each frame with a rendering of the current Lambertian fit under its
