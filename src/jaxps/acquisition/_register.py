@@ -159,11 +159,6 @@ def estimate_shifts(
     **Returns:** `(K, 2)` float64 (dy, dx): frame k's content sits at reference position plus
     (dy, dx).
     """
-    return _estimate(frames, reference, mask, upsample, normalization, WORK_PIXELS)
-
-
-def _estimate(frames, reference, mask, upsample, normalization, work_pixels):
-    """`estimate_shifts` with the frames block-averaged to about `work_pixels` per box."""
     from threadpoolctl import threadpool_limits
 
     grey = np.asarray(frames, np.float32)
@@ -184,10 +179,10 @@ def _estimate(frames, reference, mask, upsample, normalization, work_pixels):
         refs = np.asarray(reference, np.float32)
         if refs.shape != grey.shape:
             raise ValueError(f"reference images must have shape {grey.shape}, got {refs.shape}")
-    # Large boxes are block-averaged to about `work_pixels`: the motion worth undoing is pixels,
-    # and the correlation of a 1 MP face needs no more detail than that. Sides are trimmed to
+    # Boxes over WORK_PIXELS are block-averaged down to about that size: the motion worth undoing
+    # is pixels, and a 16 MP face needs no more detail than 2 MP to show it. Sides are trimmed to
     # fast FFT lengths; the FFTs take complex input (numpy's real-input fft2 was 2-7x slower).
-    factor = max(1, round(np.sqrt((box[1] - box[0]) * (box[3] - box[2]) / work_pixels)))
+    factor = max(1, round(np.sqrt((box[1] - box[0]) * (box[3] - box[2]) / WORK_PIXELS)))
     win = _window(*(_fast_len((box[j + 1] - box[j]) // factor) for j in (0, 2)))
     spectrum = lambda img: np.fft.fft2(_prepare(img, box, win, factor).astype(np.complex64))
     shared = isinstance(reference, (int, np.integer))
