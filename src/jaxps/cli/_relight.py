@@ -17,6 +17,7 @@ from ..lights import lights_from_angles
 from ..ps import photometric_stereo
 from ..reflectance import fit_brdf, relight
 from ..report._writers import write_json
+from ._reconstruct import _motion
 
 __all__ = ["circle_lights", "relight_capture", "run"]
 
@@ -118,8 +119,7 @@ def relight_capture(
     fit = model.fit._asdict()
     summary = {
         "frames": list(cap.names), "dropped_frames": list(cap.dropped), "method": method,
-        "motion": {"shifts_px": None if cap.shifts is None
-                   else np.asarray(cap.shifts).round(3).tolist(), "registered": cap.registered},
+        "motion": _motion(cap),
         "fit": fit,
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
         "mask_pixels": int(fit_mask.sum()), "png_scale": scale,
