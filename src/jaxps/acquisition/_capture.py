@@ -111,7 +111,7 @@ def load_capture(
       largest shift is between `MIN_SHIFT` = 0.5 px and `MAX_SHIFT` = 4 px, move the frames
       back (cubic spline) and leave a border as wide as that shift out of the mask. Larger
       motion is logged and left alone. The Yale B faces moved up to 1.7-3.5 px between frames;
-      registering their five scanner frames lowered the median normal error by 0.5-1.8 degrees
+      registering their five scanner frames lowered the median normal error by 0.6-1.8 degrees
       on every subject (`benchmarks/bench_faces.py --register`; docs/captures.md, "Motion").
 
     **Raises:** `FileNotFoundError`/`ValueError` naming the offending file or argument.
