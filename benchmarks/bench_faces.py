@@ -152,14 +152,14 @@ def frame_residuals(frames, keys, ref, ok):
     return out
 
 
-def inner(res):
-    """Every pixel at least `MAX_SHIFT` from the image's edge: a registered frame repeats its
-    edge there, and `load_capture` masks up to that many rows and columns, so every figure
-    leaves them out alike (registered or not)."""
+def inner(shape):
+    """A `shape` bool map of every pixel at least `MAX_SHIFT` from the image's edge: a registered
+    frame repeats its edge there, and `load_capture` masks up to that many rows and columns, so
+    every figure leaves them out alike (registered or not)."""
     from jaxps.acquisition._capture import MAX_SHIFT
 
     b = int(np.ceil(MAX_SHIFT))
-    keep = np.zeros(res.status.shape, bool)
+    keep = np.zeros(shape, bool)
     keep[b:-b, b:-b] = True
     return keep
 
@@ -176,7 +176,8 @@ def references(frames):
     within = sorted(k for k in frames if off_axis(*k) <= MAX_ANGLE)
     keys, dropped = clean(frames, within)
     ref = semi(frames, keys)
-    ref_ok = np.asarray(ref.status == 0) & np.asarray(ref.albedo > ALBEDO_MIN) & inner(ref)
+    ref_ok = (np.asarray(ref.status == 0) & np.asarray(ref.albedo > ALBEDO_MIN)
+              & inner(ref.status.shape))
     floor, halves, ok = half_floor(frames, keys, ref_ok)
     variants = {"elevation_order": half_floor(frames, keys, ref_ok, "elevation")[0],
                 "without_0_+45": (half_floor(frames, [k for k in keys if k != (0, 45)], ref_ok)[0]
@@ -187,7 +188,7 @@ def references(frames):
     if loose != keys:
         lref = semi(frames, loose)
         lref_ok = (np.asarray(lref.status == 0) & np.asarray(lref.albedo > ALBEDO_MIN)
-                   & inner(lref))
+                   & inner(lref.status.shape))
         lfloor = half_floor(frames, loose, lref_ok)[0]
         variants["inconsistent_frames_kept"] = {
             **lfloor, "lights": len(loose),

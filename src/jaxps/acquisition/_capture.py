@@ -21,7 +21,7 @@ from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ._face import bucket_box, crop, detect_face
 from ._files import PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
-from ._register import estimate_shifts
+from ._register import _shift, estimate_shifts
 from ._stack import mask_from_intensity, subtract_ambient
 
 __all__ = ["Capture", "load_capture"]
@@ -220,8 +220,7 @@ def _register(images, saturated, lights, mask, names):
     """`load_capture`'s motion step: `(images, saturated, shifts, border)`; `border` is 0 when
     the frames were left as they were."""
     reference = 0 if lights is None else int(np.argmax(np.asarray(lights)[:, 2]))
-    grey = images if images.ndim == 3 else images.mean(axis=-1)
-    shifts = estimate_shifts(grey, reference=reference, mask=mask)
+    shifts = estimate_shifts(images, reference=reference, mask=mask)
     largest = float(np.max(np.abs(shifts)))
     if largest < MIN_SHIFT:
         return images, saturated, shifts, 0
@@ -231,14 +230,7 @@ def _register(images, saturated, lights, mask, names):
             "load_capture: frames %s moved up to %.1f px against %s (more than %.0f px); "
             "left unregistered", ", ".join(moved), largest, names[reference], MAX_SHIFT)
         return images, saturated, shifts, 0
-    from scipy import ndimage  # 0.45 s to import: only when the frames are moved
-
-    out = np.empty_like(images)
-    moved_sat = np.empty_like(saturated)
-    for i, (dy, dx) in enumerate(-shifts):
-        full = (dy, dx) + (0.0,) * (images.ndim - 3)
-        out[i] = ndimage.shift(images[i], full, order=3, mode="nearest")
-        # a sample is saturated if a saturated raw sample lies within a pixel of it
-        moved_sat[i] = ndimage.shift(saturated[i].astype(np.float32), (dy, dx), order=1,
-                                     mode="nearest") > 0
-    return np.clip(out, 0, 1), moved_sat, shifts, int(np.ceil(largest))
+    # a sample is saturated if a saturated raw sample lies within a pixel of it
+    moved_sat = _shift(saturated.astype(np.float32), -shifts, order=1) > 0
+    return (np.clip(_shift(images, -shifts), 0, 1), moved_sat, shifts,
+            int(np.ceil(largest)))

@@ -347,10 +347,10 @@ def _refine(p, data, diffuse, specular, n_regions, fit_gains, steps=8):
             jac = jax.jacfwd(resid)(ab, n0, yp, wp, rs)
             a = jac.T @ jac
             a = a + lam * jnp.diag(jnp.diag(a)) + 1e-9 * jnp.eye(2, dtype=a.dtype)
-            step = -jnp.linalg.solve(a, jac.T @ r)
-            step = step * jnp.minimum(1, 0.2 / jnp.maximum(jnp.linalg.norm(step), 1e-12))
-            better = jnp.sum(resid(ab + step, n0, yp, wp, rs) ** 2) < jnp.sum(r**2)
-            return jnp.where(better, ab + step, ab), jnp.where(better, lam * 0.3, lam * 10)
+            delta = -jnp.linalg.solve(a, jac.T @ r)
+            delta = delta * jnp.minimum(1, 0.2 / jnp.maximum(jnp.linalg.norm(delta), 1e-12))
+            better = jnp.sum(resid(ab + delta, n0, yp, wp, rs) ** 2) < jnp.sum(r**2)
+            return jnp.where(better, ab + delta, ab), jnp.where(better, lam * 0.3, lam * 10)
 
         start = (jnp.zeros((2,), n0.dtype), jnp.asarray(1e-3, n0.dtype))
         return normal(n0, jax.lax.fori_loop(0, steps, step, start)[0])
