@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..core._linalg import REL_DET_MIN, solve3
@@ -22,7 +23,7 @@ from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["PSResult", "ps_l2"]
+__all__ = ["PSResult", "host_constants", "ps_l2"]
 
 
 class PSResult(NamedTuple):
@@ -184,11 +185,25 @@ def _shared_constants(lights):
     return lights, jnp.linalg.pinv(lights), _null_basis(lights), lights.T @ lights, full_rank
 
 
+def host_constants(lights: np.ndarray) -> tuple[np.ndarray, ...]:
+    """`_shared_constants` in float64 numpy, for `(K, 3)` unit lights known before tracing.
+
+    With these as arguments the jitted solve lowers no SVD: lowering a LAPACK call imports
+    `scipy.linalg` (0.12-0.15 s of every command-line run). Not differentiable: traced lights
+    take `_shared_constants`.
+    """
+    lights = np.asarray(lights, np.float64)
+    u, s, _ = np.linalg.svd(lights, full_matrices=True)
+    full_rank = np.bool_(s[2] > s[0] / MAX_LIGHT_CONDITION)
+    return lights, np.linalg.pinv(lights), u[:, 3:].T, lights.T @ lights, full_rank
+
+
 @jax.jit
-def ps_l2(images, lights, mask, sample_mask, thresholds):
+def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
     """Jitted core. `images` `(K, H, W, C)`; `lights` `(K, 3)` or `(K, H, W, 3)`;
     `sample_mask` `(K, H, W)` bool or None (every sample allowed: no mask planes are read, or
-    copied into the `cond` below).
+    copied into the `cond` below); `shared`: `host_constants(lights)` or None (computed here,
+    differentiably).
 
     The kernels take one plane per sample and channel (`(H*W,)` each) rather than slicing a
     `(K, H*W, C)` block: under `vmap`, indexing a batched block moves the pixel axis first (a
@@ -216,9 +231,14 @@ def ps_l2(images, lights, mask, sample_mask, thresholds):
         return jax.vmap(_pixel_weighted, in_axes=(0, axis, 0, 0 if per_pixel else None, None))(
             *planes(images, sample_mask, mask), lt, thresholds)
 
+    if shared is None and lights.ndim == 2:
+        shared = _shared_constants(lights)
+    elif shared is not None:
+        shared = tuple(a.astype(images.dtype) if a.dtype != bool else a for a in shared)
+
     def all_used(images, lights, mask, sample_mask, thresholds):
         return jax.vmap(_pixel_all_used, in_axes=(0, axis, 0, None, None))(
-            *planes(images, sample_mask, mask), _shared_constants(lights), thresholds)
+            *planes(images, sample_mask, mask), shared, thresholds)
 
     args = (images, lights, mask, sample_mask, thresholds)
     if lights.ndim == 2:

@@ -18,7 +18,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._host import to_device
 from ..lights._directions import validate_lights
-from ._l2 import PSResult
+from ._l2 import PSResult, host_constants
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
 
@@ -135,6 +135,8 @@ def photometric_stereo(
     # Arrays in `options` are traced; everything else (step limits, loss names, solver
     # objects) is static. Unhashable options fall back to running the wrapper eagerly.
     dynamic = {k: v for k, v in options.items() if isinstance(v, (jax.Array, np.ndarray))}
+    if method == "l2" and isinstance(lights, np.ndarray) and lights.ndim == 2:
+        dynamic["shared"] = host_constants(lights)  # no LAPACK call in the jitted solve
     static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
     try:
         hash(static)
