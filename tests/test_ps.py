@@ -205,3 +205,38 @@ def test_coplanar_lights_rejected_with_condition_number():
     lights = jaxps.lights_from_angles([0, 20, -20, 40], [0, 0, 0, 0])
     with pytest.raises(ValueError, match="condition number"):
         jaxps.photometric_stereo(np.ones((4, 3, 3), np.float32), lights)
+
+
+def test_host_constants_match_the_traced_ones():
+    # Lights known before tracing take numpy's pseudo-inverse and null basis; they must agree
+    # with the differentiable jnp path (the null basis up to rotation: compare N^T N).
+    from jaxps.ps._l2 import _shared_constants, host_constants
+
+    lights = np.asarray(jaxps.lights_from_angles([0, 25, -25, 0, 0, 40], [0, 0, 0, 20, -20, 30]))
+    host = host_constants(lights)
+    traced = [np.asarray(a, np.float64) for a in
+              jax.jit(_shared_constants)(jnp.asarray(lights, jnp.float32))]
+    np.testing.assert_allclose(host[1], traced[1], atol=1e-5)
+    np.testing.assert_allclose(host[2].T @ host[2], traced[2].T @ traced[2], atol=1e-5)
+    np.testing.assert_allclose(host[2] @ lights, 0, atol=1e-12)
+    np.testing.assert_allclose(host[3], traced[3], atol=1e-5)
+    assert bool(host[4]) and bool(traced[4])
+    assert not bool(host_constants(np.repeat(lights[:1], 4, axis=0))[4])
+
+
+def test_l2_on_numpy_lights_imports_no_scipy():
+    # Lowering a LAPACK call (an SVD of traced lights) imports scipy.linalg: 0.12-0.15 s of
+    # every command-line run. The plain L2 solve on numpy lights must not need it.
+    import subprocess
+    import sys
+
+    code = ("import sys, numpy as np, jaxps\n"
+            "l = np.asarray(jaxps.lights_from_angles([0, 25, -25, 0, 0], [0, 0, 0, 20, -20]))\n"
+            "n = np.dstack([np.zeros((8, 8)), np.zeros((8, 8)), np.ones((8, 8))])\n"
+            "img = np.clip(np.einsum('hwc,kc->khw', n, l), 0, 1).astype(np.float32)\n"
+            "r = jaxps.photometric_stereo(img, l)\n"
+            "assert np.allclose(np.asarray(r.normals)[..., 2], 1, atol=1e-5)\n"
+            "print(sorted(m for m in sys.modules if m.startswith('scipy')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, env={**__import__("os").environ, "JAXPS_CACHE_DIR": "off"})
+    assert "scipy.linalg" not in out.stdout, out.stdout
