@@ -9,6 +9,11 @@ its summary.json, and the rest (start-up, imports, tracing, the summary) is wall
 way, cold then warm, on the 192x168 frames. Also timed: `jaxps --help`, `python -c "import jaxps"`, `python -c "import jax"` and
 `python -c "import ml_dtypes"` (best of 3; the installed ml_dtypes version is recorded).
 
+A real face (when ../shared/data is there): the same, cold and warm, on yaleB01's five cross
+frames with `--yale-names --ambient` (the frames moved, so the run registers them), then the
+time Python's garbage collector takes in a warm run, with Python's default thresholds and with
+the ones the command sets.
+
 Shape buckets (when ../shared/data is there): the five Yale B subjects' frontal five-light
 captures, face-cropped, solved and integrated one after another in one fresh process with the
 compilation cache off, once with the detector's boxes (`crop_multiple=1`: one compile per new
@@ -97,6 +102,7 @@ def main():
                          "--mask", str(frames / "mask.png"), "--out", str(tmp / "relit")],
                         {**env, "JAXPS_CACHE_DIR": str(tmp / "cache_relight")})}
                     for run in ("first (empty cache)", "second (warm cache)")}}
+        res["yaleb"] = _yaleb(jaxps, env, tmp)
     res["shape_buckets"] = _buckets(env)
     path = write_json("cli", res)
     _chart(res, path.with_suffix(".png"))
@@ -106,6 +112,14 @@ def main():
                 print(f"reconstruct {name:>9}, {run:<20} {r['wall_s']:6.2f} s wall  "
                       + ", ".join(f"{k} {v:.3f}" for k, v in r["stages_s"].items())
                       + f", start-up and rest {r['start_up_and_rest_s']:.2f}")
+    for run, r in res.get("yaleb", {}).items():
+        if isinstance(r, dict) and "wall_s" in r:
+            print(f"reconstruct yaleB01, {run:<20} {r['wall_s']:6.2f} s wall  "
+                  + ", ".join(f"{k} {v:.3f}" for k, v in r["stages_s"].items()))
+    for name, runs in res.get("yaleb", {}).get("gc_warm", {}).items():
+        print(f"yaleB01 warm, {name}: garbage collection "
+              + ", ".join(f"{sum(r['gc_s']):.3f}" for r in runs) + " s, command "
+              + ", ".join(f"{r['seconds']:.2f}" for r in runs) + " s")
     for run, r in res.get("relight", {}).items():
         if isinstance(r, dict):
             print(f"relight 192x168, {run:<20} {r['wall_s']:6.2f} s wall")
@@ -120,6 +134,56 @@ def main():
 
 SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
 NAMES = ("A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20")
+
+
+# Runs `jaxps.cli.main(argv)` and prints the time Python's garbage collector took, per
+# generation. With --python-defaults the thresholds the command sets are not applied.
+_GC_CHILD = """
+import gc, json, sys, time
+if sys.argv[1] == "--python-defaults":
+    gc.set_threshold = lambda *a: None
+spent, count, t0 = [0.0, 0.0, 0.0], [0, 0, 0], [0.0]
+def cb(phase, info):
+    if phase == "start":
+        t0[0] = time.perf_counter()
+    else:
+        spent[info["generation"]] += time.perf_counter() - t0[0]
+        count[info["generation"]] += 1
+gc.callbacks.append(cb)
+t = time.perf_counter()
+from jaxps.cli import main
+main(sys.argv[2:])
+print(json.dumps({"gc_s": spent, "collections": count, "seconds": time.perf_counter() - t}))
+"""
+
+
+def _yaleb(jaxps, env, tmp):
+    """`jaxps reconstruct` on a real face, the issue-17 command line (yaleB01's five cross
+    frames, `--yale-names --ambient`): its frames moved, so the run registers them. Cold and
+    warm, then the garbage collector's share of a warm run, with Python's default thresholds
+    and with the command's (`jaxps.cli._main.GC_THRESHOLDS`), three runs each, alternating."""
+    folder = data_dir() / "yaleb" / "yaleB01"
+    if not folder.is_dir():
+        return {"skipped": f"no Yale B data at {folder}"}
+    out = tmp / "out_yaleb"
+    argv = ["reconstruct", *[str(folder / f"yaleB01_P00{n}.pgm") for n in NAMES], "--yale-names",
+            "--ambient", str(folder / "yaleB01_P00_Ambient.pgm"), "--out", str(out)]
+    run_env = {**env, "JAXPS_CACHE_DIR": str(tmp / "cache_yaleb")}
+    res = {"frames": 5, "rows": 192, "columns": 168}
+    for run in ("first (empty cache)", "second (warm cache)"):
+        wall = _wall([*jaxps, *argv], run_env)
+        summary = json.loads((out / "summary.json").read_text())
+        res[run] = {"wall_s": wall, "stages_s": summary["timings_s"],
+                    "start_up_and_rest_s": wall - sum(summary["timings_s"].values()),
+                    "registered": summary["motion"]["registered"]}
+    gc_runs = {"python defaults": [], "jaxps thresholds": []}
+    for _ in range(3):
+        for name, flag in (("python defaults", "--python-defaults"), ("jaxps thresholds", "-")):
+            proc = subprocess.run([sys.executable, "-c", _GC_CHILD, flag, *argv], env=run_env,
+                                  check=True, capture_output=True, text=True)
+            gc_runs[name].append(json.loads(proc.stdout.strip().splitlines()[-1]))
+    res["gc_warm"] = gc_runs
+    return res
 
 
 def _buckets(env):
