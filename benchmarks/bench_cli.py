@@ -10,9 +10,7 @@ way, cold then warm, on the 192x168 frames. Also timed: `jaxps --help`, `python 
 `python -c "import ml_dtypes"` (best of 3; the installed ml_dtypes version is recorded).
 
 A real face (when ../shared/data is there): the same, cold and warm, on yaleB01's five cross
-frames with `--yale-names --ambient` (the frames moved, so the run registers them), then the
-time Python's garbage collector takes in a warm run, with Python's default thresholds and with
-the ones the command sets.
+frames with `--yale-names --ambient` (the frames moved, so the run registers them).
 
 Shape buckets (when ../shared/data is there): the five Yale B subjects' frontal five-light
 captures, face-cropped, solved and integrated one after another in one fresh process with the
@@ -116,10 +114,6 @@ def main():
         if isinstance(r, dict) and "wall_s" in r:
             print(f"reconstruct yaleB01, {run:<20} {r['wall_s']:6.2f} s wall  "
                   + ", ".join(f"{k} {v:.3f}" for k, v in r["stages_s"].items()))
-    for name, runs in res.get("yaleb", {}).get("gc_warm", {}).items():
-        print(f"yaleB01 warm, {name}: garbage collection "
-              + ", ".join(f"{sum(r['gc_s']):.3f}" for r in runs) + " s, command "
-              + ", ".join(f"{r['seconds']:.2f}" for r in runs) + " s")
     for run, r in res.get("relight", {}).items():
         if isinstance(r, dict):
             print(f"relight 192x168, {run:<20} {r['wall_s']:6.2f} s wall")
@@ -136,32 +130,10 @@ SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
 NAMES = ("A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20")
 
 
-# Runs `jaxps.cli.main(argv)` and prints the time Python's garbage collector took, per
-# generation. With --python-defaults the thresholds the command sets are not applied.
-_GC_CHILD = """
-import gc, json, sys, time
-if sys.argv[1] == "--python-defaults":
-    gc.set_threshold = lambda *a: None
-spent, count, t0 = [0.0, 0.0, 0.0], [0, 0, 0], [0.0]
-def cb(phase, info):
-    if phase == "start":
-        t0[0] = time.perf_counter()
-    else:
-        spent[info["generation"]] += time.perf_counter() - t0[0]
-        count[info["generation"]] += 1
-gc.callbacks.append(cb)
-t = time.perf_counter()
-from jaxps.cli import main
-main(sys.argv[2:])
-print(json.dumps({"gc_s": spent, "collections": count, "seconds": time.perf_counter() - t}))
-"""
-
-
 def _yaleb(jaxps, env, tmp):
     """`jaxps reconstruct` on a real face, the issue-17 command line (yaleB01's five cross
-    frames, `--yale-names --ambient`): its frames moved, so the run registers them. Cold and
-    warm, then the garbage collector's share of a warm run, with Python's default thresholds
-    and with the command's (`jaxps.cli._main.GC_THRESHOLDS`), three runs each, alternating."""
+    frames, `--yale-names --ambient`): its frames moved, so the run registers them. Cold, then
+    warm."""
     folder = data_dir() / "yaleb" / "yaleB01"
     if not folder.is_dir():
         return {"skipped": f"no Yale B data at {folder}"}
@@ -176,13 +148,6 @@ def _yaleb(jaxps, env, tmp):
         res[run] = {"wall_s": wall, "stages_s": summary["timings_s"],
                     "start_up_and_rest_s": wall - sum(summary["timings_s"].values()),
                     "registered": summary["motion"]["registered"]}
-    gc_runs = {"python defaults": [], "jaxps thresholds": []}
-    for _ in range(3):
-        for name, flag in (("python defaults", "--python-defaults"), ("jaxps thresholds", "-")):
-            proc = subprocess.run([sys.executable, "-c", _GC_CHILD, flag, *argv], env=run_env,
-                                  check=True, capture_output=True, text=True)
-            gc_runs[name].append(json.loads(proc.stdout.strip().splitlines()[-1]))
-    res["gc_warm"] = gc_runs
     return res
 
 

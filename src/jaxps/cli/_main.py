@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import gc
 import importlib
 import importlib.metadata
 import sys
@@ -27,23 +26,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-# Collection thresholds while a command runs. A command imports JAX and traces a few programs,
-# which allocates many long-lived objects; with Python's defaults (700, 10, 10) a warm
-# `jaxps reconstruct` ran hundreds of young and two full collections (benchmarks/bench_cli.py,
-# "gc"). Cycles are still collected, only less often.
-GC_THRESHOLDS = (50_000, 20, 100)
-
-
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    before = gc.get_threshold()
-    gc.set_threshold(*GC_THRESHOLDS)
+    enable_compilation_cache()
     try:
-        enable_compilation_cache()
         return importlib.import_module(f"{__package__}.{args.module}").run(args)
     except (ValueError, FileNotFoundError) as err:
         print(f"jaxps {args.command}: error: {err}", file=sys.stderr)
         return 2
-    finally:
-        gc.set_threshold(*before)

@@ -80,8 +80,6 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
 from ..core._random import as_key
-from ..lights._directions import MAX_LIGHT_CONDITION
-from ..ps import photometric_stereo
 from . import _parametric
 from ._auto import fit_auto, lolo_folds
 from ._features import (
