@@ -13,7 +13,8 @@
   error can flatter the registered figure.
 - **Speed**: `estimate_shifts` on five frames of a rendered face at 192x168 and 1280x1024
   (median of 5 calls), against scikit-image's `phase_cross_correlation` (upsample 100, phase
-  normalisation) on the same windowed crops, and `load_capture`'s whole motion step.
+  normalisation) on the same windowed crops; `shift_frames` (moving the five frames back)
+  against `scipy.ndimage.shift` (cubic spline, edges repeated), which it replaced.
 
 Writes benchmarks/results/register.json.
 """
@@ -134,10 +135,18 @@ def speed():
                 normalization="phase")[0] for f in moved])
 
         theirs = skimage_shifts()
+
+        def scipy_shift(frames, by):  # what shift_frames replaced (and no longer imports)
+            return np.stack([ndimage.shift(f, s, order=3, mode="nearest")
+                             for f, s in zip(frames, by)])
+
         out[f"{h}x{w}"] = {
             "estimate_shifts_s": _median_s(lambda: jaxps.estimate_shifts(moved, mask=mask)),
             "skimage_s": _median_s(skimage_shifts, repeats=3),
             "shift_frames_s": _median_s(lambda: jaxps.shift_frames(moved, -ours), repeats=3),
+            "scipy_ndimage_shift_s": _median_s(lambda: scipy_shift(moved, -ours), repeats=3),
+            "shift_frames_max_difference_from_scipy": float(np.abs(
+                np.asarray(jaxps.shift_frames(moved, -ours)) - scipy_shift(moved, -ours)).max()),
             "max_error_px": float(np.abs(ours - shifts).max()),
             "skimage_max_error_px": float(np.abs(theirs - shifts).max()),
         }
