@@ -6,11 +6,16 @@ first with an empty compilation-cache folder (`JAXPS_CACHE_DIR`), then again wit
 the first run filled. Wall time is measured around the process; the per-stage times come from
 its summary.json, and the rest (start-up, imports, tracing, the summary) is wall minus stages.
 `jaxps relight` (the default `wrap_ggx` fit, relit images and a 36-frame GIF) runs the same
-way, cold then warm, on the 192x168 frames. Also timed: `jaxps --help`, `python -c "import jaxps"`, `python -c "import jax"` and
-`python -c "import ml_dtypes"` (best of 3; the installed ml_dtypes version is recorded).
+way, cold then warm, on the 192x168 frames. Also timed: `jaxps --help`, `python -c "import
+jaxps"`, `python -c "import jax"` and `python -c "import ml_dtypes"` (best of 3; the installed
+ml_dtypes version is recorded).
 
 A real face (when ../shared/data is there): the same, cold and warm, on yaleB01's five cross
 frames with `--yale-names --ambient` (the frames moved, so the run registers them).
+
+For `jaxps relight` and the real face, one more warm run counts the XLA programs the process
+traces and lowers (`JAX_LOG_COMPILES=1`, "Compiling" lines): each costs tracing and lowering
+even when its compiled code comes from the cache.
 
 Shape buckets (when ../shared/data is there): the five Yale B subjects' frontal five-light
 captures, face-cropped, solved and integrated one after another in one fresh process with the
@@ -92,14 +97,15 @@ def main():
                              "outputs": sorted(p.name for p in out.iterdir())}
             res["reconstruct"][name] = {"frames": 5, "rows": rows, "columns": cols, **runs}
             if name == "192x168":
+                relight = [*jaxps, "relight", *sorted(str(p) for p in frames.glob("frame_*.png")),
+                           "--lights", str(frames / "lights.txt"),
+                           "--ambient", str(frames / "ambient.png"),
+                           "--mask", str(frames / "mask.png"), "--out", str(tmp / "relit")]
+                relight_env = {**env, "JAXPS_CACHE_DIR": str(tmp / "cache_relight")}
                 res["relight"] = {"frames": 5, "rows": rows, "columns": cols, **{
-                    run: {"wall_s": _wall(
-                        [*jaxps, "relight", *sorted(str(p) for p in frames.glob("frame_*.png")),
-                         "--lights", str(frames / "lights.txt"),
-                         "--ambient", str(frames / "ambient.png"),
-                         "--mask", str(frames / "mask.png"), "--out", str(tmp / "relit")],
-                        {**env, "JAXPS_CACHE_DIR": str(tmp / "cache_relight")})}
-                    for run in ("first (empty cache)", "second (warm cache)")}}
+                    run: {"wall_s": _wall(relight, relight_env)}
+                    for run in ("first (empty cache)", "second (warm cache)")},
+                    "programs_per_run": _programs(relight, relight_env)}
         res["yaleb"] = _yaleb(jaxps, env, tmp)
     res["shape_buckets"] = _buckets(env)
     path = write_json("cli", res)
@@ -117,6 +123,9 @@ def main():
     for run, r in res.get("relight", {}).items():
         if isinstance(r, dict):
             print(f"relight 192x168, {run:<20} {r['wall_s']:6.2f} s wall")
+    for name in ("relight", "yaleb"):
+        if "programs_per_run" in res.get(name, {}):
+            print(f"{name}: {res[name]['programs_per_run']} XLA programs traced per run")
     for name, t in res["start_up_s"].items():
         print(f"{name:>14}: {t:.3f} s")
     for mode, r in res["shape_buckets"].items():
@@ -128,6 +137,14 @@ def main():
 
 SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
 NAMES = ("A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20")
+
+
+def _programs(argv, env) -> int:
+    """XLA programs one more (warm) run of `argv` compiles or loads from the cache: each was
+    traced and lowered in that process (`JAX_LOG_COMPILES=1`, "Compiling" lines)."""
+    proc = subprocess.run(argv, env={**env, "JAX_LOG_COMPILES": "1"}, check=True,
+                          capture_output=True, text=True)
+    return sum("Compiling " in line for line in proc.stderr.splitlines())
 
 
 def _yaleb(jaxps, env, tmp):
@@ -148,6 +165,7 @@ def _yaleb(jaxps, env, tmp):
         res[run] = {"wall_s": wall, "stages_s": summary["timings_s"],
                     "start_up_and_rest_s": wall - sum(summary["timings_s"].values()),
                     "registered": summary["motion"]["registered"]}
+    res["programs_per_run"] = _programs([*jaxps, *argv], run_env)
     return res
 
 

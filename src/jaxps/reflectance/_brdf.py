@@ -523,9 +523,11 @@ def fit_brdf(
     key = as_key(key, default=0)
     k, h, w = images.shape
 
-    feats = _features(normals, lights)  # (K, H, W, 5)
-    usable = (mask[None] & np.isfinite(np.asarray(images)) & (np.asarray(images) < saturation))
-    usable &= np.asarray(albedo > 0)[None]
+    # The samples are drawn and summarised on the host: each eager jnp op here traced and
+    # lowered a small program of its own in every new process (a command-line run paid ~30).
+    feats = np.asarray(_features(normals, lights))  # (K, H, W, 5)
+    images_np, albedo_np = np.asarray(images), np.asarray(albedo)
+    usable = mask[None] & np.isfinite(images_np) & (images_np < saturation) & (albedo_np > 0)
     idx = np.flatnonzero(usable.reshape(-1))
     if idx.size == 0:
         raise ValueError("no usable sample: every masked sample is non-finite or saturated")
@@ -533,15 +535,14 @@ def fit_brdf(
     if idx.size > n_samples:
         pick = np.asarray(jax.random.choice(key_sample, idx.size, (n_samples,), replace=False))
         idx = np.sort(idx[pick])
-    f = feats.reshape(-1, 5)[idx]
-    frame = jnp.asarray(idx // (h * w), jnp.int32)
-    rho = jnp.broadcast_to(albedo, (k, h, w)).reshape(-1)[idx]
-    target = images.reshape(-1)[idx]
-    u = jax.vmap(_box_coords)(f)
-    box_lo, box_hi = jnp.min(u, axis=0), jnp.max(u, axis=0)
-    rho_ref = jnp.median(albedo[jnp.asarray(mask)]).astype(dtype)
+    f_host = feats.reshape(-1, 5)[idx]
+    u = np.stack([f_host[:, 0] - f_host[:, 1], f_host[:, 0] + f_host[:, 1], f_host[:, 2]], 1)
     cell = math.radians(support_deg)
-    support = jnp.asarray(_support_grid(f[:, :3], cell, min_count), dtype)
+    f, frame, rho, target, box_lo, box_hi, rho_ref, support = jax.device_put((
+        f_host, (idx // (h * w)).astype(np.int32),
+        np.broadcast_to(albedo_np, (k, h, w)).reshape(-1)[idx], images_np.reshape(-1)[idx],
+        u.min(0), u.max(0), np.median(albedo_np[mask]).astype(dtype),
+        _support_grid(f_host[:, :3], cell, min_count).astype(dtype)))
 
     common = dict(box_lo=box_lo, box_hi=box_hi, support=support, rho_ref=rho_ref,
                   bound=float(bound), cell=cell,

@@ -207,22 +207,26 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     n_regions = cols * -(-h // size)
     yy, xx = np.mgrid[:h, :w]
     region_map = (yy // size) * cols + xx // size
-    pix = np.flatnonzero(np.asarray(mask).reshape(-1) & np.asarray(usable).any(0).reshape(-1))
+    # Samples are gathered and results scattered on the host: each eager jnp op traced and
+    # lowered a small program of its own in every new process.
+    images, usable = np.asarray(images), np.asarray(usable)
+    normals = np.asarray(normals).reshape(-1, 3)
+    pix = np.flatnonzero(np.asarray(mask).reshape(-1) & usable.any(0).reshape(-1))
 
     def data_of(sel):
-        return (normals.reshape(-1, 3)[sel], lights, images.reshape(k, -1)[:, sel],
-                jnp.asarray(np.asarray(usable).reshape(k, -1)[:, sel], dtype),
-                jnp.asarray(region_map.reshape(-1)[sel], jnp.int32))
+        return (normals[sel], lights, images.reshape(k, -1)[:, sel],
+                usable.reshape(k, -1)[:, sel].astype(dtype),
+                region_map.reshape(-1)[sel].astype(np.int32))
 
     train = pix
     if pix.size * k > n_samples:
         pick = np.asarray(jax.random.choice(key, pix.size, (max(n_samples // k, 1),),
                                             replace=False))
         train = np.sort(pix[pick])
-    p0 = jnp.concatenate([
-        jnp.asarray([_from_bounded(_START[diffuse], diffuse) if diffuse != "lambert" else 0.0,
-                     _from_bounded(_START[specular], specular) if specular else 0.0], dtype),
-        jnp.zeros((k,), dtype)])
+    p0 = np.concatenate([
+        np.asarray([_from_bounded(_START[diffuse], diffuse) if diffuse != "lambert" else 0.0,
+                    _from_bounded(_START[specular], specular) if specular else 0.0], dtype),
+        np.zeros((k,), dtype)])
     if solver is None:
         # QR (the default), not Cholesky of the normal equations: the centred log-gains and an
         # unused shape parameter leave J rank-deficient, and float32 Cholesky then failed
@@ -231,18 +235,19 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     sol = _solve(p0, data_of(train), solver, *static, int(max_steps))
     steps = int(sol.stats["num_steps"])
     for _ in range(rounds if refine_normals else 0):
-        refined = _refine_jit(sol.value, data_of(pix), *static)
-        normals = normals.reshape(-1, 3).at[pix].set(refined).reshape(h, w, 3)
+        normals = normals.copy()
+        normals[pix] = np.asarray(_refine_jit(sol.value, data_of(pix), *static))
         sol = _solve(sol.value, data_of(train), solver, *static, int(max_steps))
         steps += int(sol.stats["num_steps"])
     pred, rho_s, rho_d, shape, gains = _predict_jit(sol.value, data_of(pix), *static)
-    alb = albedo.reshape(-1)[pix]
-    ratio = jnp.ones((h * w,), dtype).at[pix].set(
-        jnp.where(alb > 0, rho_d / jnp.where(alb > 0, alb, 1), 1))
-    spec = jnp.zeros((h * w,), dtype).at[pix].set(rho_s[region_map.reshape(-1)[pix]])
-    params = ParametricParams(shape, ratio.reshape(h, w), spec.reshape(h, w),
-                              normals if refine_normals else None)
-    sel = np.asarray(usable).reshape(k, -1)[:, pix]
+    alb = np.asarray(albedo).reshape(-1)[pix]
+    ratio = np.ones((h * w,), dtype)
+    ratio[pix] = np.where(alb > 0, np.asarray(rho_d) / np.where(alb > 0, alb, 1), 1)
+    spec = np.zeros((h * w,), dtype)
+    spec[pix] = np.asarray(rho_s)[region_map.reshape(-1)[pix]]
+    params = ParametricParams(shape, *jax.device_put((ratio.reshape(h, w), spec.reshape(h, w))),
+                              jax.device_put(normals.reshape(h, w, 3)) if refine_normals else None)
+    sel = usable.reshape(k, -1)[:, pix]
     target = images.reshape(k, -1)[:, pix]
     ok = bool(sol.result == optx.RESULTS.successful)
     message = "converged" if ok else str(sol.result).split("<", 1)[-1].rstrip(">")
@@ -267,7 +272,7 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     lobe_params = 0 if specular is None else 1 + np.unique(region_map.reshape(-1)[pix]).size
     n_params = ((diffuse != "lambert") + lobe_params + (k - 1) * bool(frame_gains)
                 + (0 if params.residual is None else ravel_pytree(params.residual)[0].size))
-    return params, gains, steps, ok, message, pred[sel], target[sel], int(n_params)
+    return params, gains, steps, ok, message, np.asarray(pred)[sel], target[sel], int(n_params)
 
 
 def _half_diff(normals, lights):
