@@ -71,6 +71,10 @@ def test_shift_frames_equal_scipy_ndimage_shift():
                 ref = ndimage.shift(f, (dy, dx) + (0.0,) * (f.ndim - 2), order=order,
                                     mode="nearest")
                 np.testing.assert_allclose(o, ref, atol=2e-7, rtol=0)
+    counts = (grey * 60000).astype(np.uint16)  # integer frames: rounded, as scipy does
+    np.testing.assert_array_equal(
+        _shift(counts, shifts), [ndimage.shift(f, s, order=3, mode="nearest")
+                                 for f, s in zip(counts, shifts)])
     np.testing.assert_array_equal(_shift(grey, np.array([[0.0, 0.0]] * 4)), grey)
     np.testing.assert_allclose(_shift(grey, np.array([[1.0, -2.0]] * 4))[:, 1:, :-2],
                                grey[:, :-1, 2:], atol=1e-6)

@@ -75,7 +75,11 @@ def _shift(arr, shifts, order=3):
         c = np.pad(np.asarray(arr[i], np.float64), pad, mode="edge")
         if order == 3:
             c = _spline_coefficients(_spline_coefficients(c, 0), 1)
-        out[i] = _move(_move(c, dy, 0, order), dx, 1, order)
+        moved = _move(_move(c, dy, 0, order), dx, 1, order)
+        if np.issubdtype(arr.dtype, np.integer):  # rounded and clipped, as scipy does
+            info = np.iinfo(arr.dtype)
+            moved = np.clip(np.rint(moved), info.min, info.max)
+        out[i] = moved
     return out
 
 
