@@ -67,11 +67,11 @@ def _shift(arr, shifts, order=3):
     importing `scipy.ndimage` took 0.45 s of every command-line run that moved its frames.
     """
     out = np.empty_like(arr)
+    pad = [(SPLINE_PAD, SPLINE_PAD)] * 2 + [(0, 0)] * (arr.ndim - 3)
     for i, (dy, dx) in enumerate(shifts):
         if dy == 0 and dx == 0:
             out[i] = arr[i]
             continue
-        pad = [(SPLINE_PAD, SPLINE_PAD)] * 2 + [(0, 0)] * (arr.ndim - 3)
         c = np.pad(np.asarray(arr[i], np.float64), pad, mode="edge")
         if order == 3:
             c = _spline_coefficients(_spline_coefficients(c, 0), 1)

@@ -10,8 +10,8 @@ from __future__ import annotations
 # that the two agree).
 INTENSITY_METHODS = ("none", "mean", "frontal", "semi_calibrated")
 
-__all__ = ["add_light_args", "demo_parser", "reconstruct_parser", "relight_parser",
-           "report_parser"]
+__all__ = ["add_light_args", "add_register_arg", "demo_parser", "reconstruct_parser",
+           "relight_parser", "report_parser"]
 
 
 def add_register_arg(p) -> None:

@@ -187,8 +187,10 @@ class BRDFModel(eqx.Module):
 
 
 def _box_coords(f):
-    """(θi-θr, θi+θr, Δα) from one feature vector (θi, θr, Δα, x, y)."""
-    return jnp.stack([f[0] - f[1], f[0] + f[1], f[2]])
+    """(θi-θr, θi+θr, Δα) from feature vectors (θi, θr, Δα, x, y) along the last axis; numpy
+    in, numpy out (`fit_brdf` summarises its samples on the host)."""
+    xp = np if isinstance(f, np.ndarray) else jnp
+    return xp.stack([f[..., 0] - f[..., 1], f[..., 0] + f[..., 1], f[..., 2]], axis=-1)
 
 
 def _mlp(params, z):
@@ -536,7 +538,7 @@ def fit_brdf(
         pick = np.asarray(jax.random.choice(key_sample, idx.size, (n_samples,), replace=False))
         idx = np.sort(idx[pick])
     f_host = feats.reshape(-1, 5)[idx]
-    u = np.stack([f_host[:, 0] - f_host[:, 1], f_host[:, 0] + f_host[:, 1], f_host[:, 2]], 1)
+    u = _box_coords(f_host)
     cell = math.radians(support_deg)
     f, frame, rho, target, box_lo, box_hi, rho_ref, support = jax.device_put((
         f_host, (idx // (h * w)).astype(np.int32),
