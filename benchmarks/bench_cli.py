@@ -10,6 +10,9 @@ way, cold then warm, on the 192x168 frames. Also timed: `jaxps --help`, `python 
 jaxps"`, `python -c "import jax"` and `python -c "import ml_dtypes"` (best of 3; the installed
 ml_dtypes version is recorded).
 
+Garbage collection: warm runs of the largest size alternate between the `jaxps` script
+(`jaxps.cli.console`, with `gc.freeze`) and `jaxps.cli.main` without it (`gc_freeze`).
+
 A real face (when ../shared/data is there): the same, cold and warm, on yaleB01's five cross
 frames with `--yale-names --ambient` (the frames moved, so the run registers them).
 
@@ -96,6 +99,9 @@ def main():
                              "start_up_and_rest_s": wall - sum(stages.values()),
                              "outputs": sorted(p.name for p in out.iterdir())}
             res["reconstruct"][name] = {"frames": 5, "rows": rows, "columns": cols, **runs}
+            if name == SIZES[0][0]:
+                res["gc_freeze"] = _freeze_ab(jaxps, argv[len(jaxps):],
+                                              {**env, "JAXPS_CACHE_DIR": str(cache)})
             if name == "192x168":
                 relight = [*jaxps, "relight", *sorted(str(p) for p in frames.glob("frame_*.png")),
                            "--lights", str(frames / "lights.txt"),
@@ -123,6 +129,10 @@ def main():
     for run, r in res.get("relight", {}).items():
         if isinstance(r, dict):
             print(f"relight 192x168, {run:<20} {r['wall_s']:6.2f} s wall")
+    for key, r in res.get("gc_freeze", {}).items():
+        if isinstance(r, dict):
+            print(f"warm {SIZES[0][0]}, {key}: median {r['median_s']:.2f} s, "
+                  f"min {r['min_s']:.2f} s")
     for name in ("relight", "yaleb"):
         if "programs_per_run" in res.get(name, {}):
             print(f"{name}: {res[name]['programs_per_run']} XLA programs traced per run")
@@ -137,6 +147,19 @@ def main():
 
 SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
 NAMES = ("A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20")
+
+
+def _freeze_ab(jaxps, argv, env, rounds=5):
+    """Warm runs of the same command, alternating: the `jaxps` script (`jaxps.cli.console`,
+    which calls `gc.freeze` once the command's modules are imported and again at the end)
+    against `jaxps.cli.main` run without it. Median and min wall seconds of each."""
+    plain = [sys.executable, "-c", "import sys; from jaxps.cli import main; sys.exit(main())"]
+    walls = {"jaxps (console, gc.freeze)": [], "main() without gc.freeze": []}
+    for _ in range(rounds):
+        for key, cmd in zip(walls, (jaxps, plain)):
+            walls[key].append(_wall([*cmd, *argv], env))
+    return {"rounds": rounds, **{k: {"median_s": sorted(v)[len(v) // 2], "min_s": min(v)}
+                                 for k, v in walls.items()}}
 
 
 def _programs(argv, env) -> int:

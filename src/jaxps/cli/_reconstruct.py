@@ -10,6 +10,7 @@ import os
 import sys
 import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -107,15 +108,23 @@ def reconstruct(
         def write():
             os.makedirs(out, exist_ok=True)
             normals, albedo = np.asarray(res.normals), np.asarray(res.albedo)
-            write_normal_map(os.path.join(out, "normals.png"), normals)
-            scale = write_albedo(os.path.join(out, "albedo.png"), albedo)
-            np.save(os.path.join(out, "height.npy"), height)
-            np.save(os.path.join(out, "status.npy"), np.asarray(res.status))
-            faces = write_meshes(out, height, ok, albedo, normals, obj=obj,
-                                 points=points)["faces"]
-            write_preview(os.path.join(out, "preview.png"), normals, albedo, height, ok,
-                          title=f"{cap.names[0]} ... ({len(cap.names)} frames)")
-            return scale, faces
+            path = lambda name: os.path.join(out, name)
+            # The files are independent, and PNG encoding and numpy release the GIL: on two
+            # threads the 1 MP outputs took about two-thirds of the time of one after another.
+            with ThreadPoolExecutor(min(2, os.cpu_count() or 1)) as pool:
+                jobs = [pool.submit(write_meshes, out, height, ok, albedo, normals, obj=obj,
+                                    points=points),
+                        pool.submit(write_albedo, path("albedo.png"), albedo),
+                        pool.submit(write_normal_map, path("normals.png"), normals),
+                        pool.submit(write_preview, path("preview.png"), normals, albedo,
+                                    height, ok,
+                                    title=f"{cap.names[0]} ... ({len(cap.names)} frames)"),
+                        pool.submit(np.save, path("height.npy"), height),
+                        pool.submit(np.save, path("status.npy"), np.asarray(res.status))]
+                meshes, scale = (job.result() for job in jobs[:2])
+                for job in jobs[2:]:
+                    job.result()
+            return scale, meshes["faces"]
 
         scale, faces = stages.run("write outputs", write)
     finally:

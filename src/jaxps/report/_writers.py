@@ -22,8 +22,10 @@ def write_normal_map(path, normals: np.ndarray) -> None:
     """
     import cv2
 
-    v = np.round((np.clip(np.asarray(normals, np.float64), -1, 1) + 1) / 2 * 65535)
-    if not cv2.imwrite(os.fspath(path), v.astype(np.uint16)[..., ::-1]):
+    v = np.clip(np.asarray(normals, np.float32), -1, 1)  # a new array, then in place
+    v += 1
+    v *= np.float32(65535 / 2)
+    if not cv2.imwrite(os.fspath(path), np.rint(v, out=v).astype(np.uint16)[..., ::-1]):
         raise OSError(f"could not write {path}")
 
 
