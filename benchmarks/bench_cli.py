@@ -66,10 +66,16 @@ def _wall(argv, env) -> float:
 
 def main():
     env = dict(os.environ)
+    # Python's bytecode cache on, as on a user's machine (pip compiles an installed package's
+    # modules; an editable install writes them on first import). This project's machines set
+    # PYTHONDONTWRITEBYTECODE=1, and every run then compiled jaxps's modules from source.
+    bytecode_off = env.pop("PYTHONDONTWRITEBYTECODE", None)
     jaxps = _command()
     res = {"command": " ".join(pathlib.Path(a).name for a in jaxps), "quick": QUICK,
            "env": environment(), "start_up_s": {}, "reconstruct": {}}
     res["env"]["OPENBLAS_NUM_THREADS"] = env.get("OPENBLAS_NUM_THREADS")
+    res["env"]["PYTHONDONTWRITEBYTECODE"] = (f"{bytecode_off} in the calling shell, unset for the "
+                                             "timed commands" if bytecode_off else None)
     res["env"]["ml_dtypes"] = importlib.metadata.version("ml_dtypes")
     for name, argv in [("jaxps --help", [*jaxps, "--help"]),
                        ("import jaxps", [sys.executable, "-c", "import jaxps"]),
