@@ -106,25 +106,8 @@ def reconstruct(
             integrate(res.normals, mask=ok if ok.any() else None, method=integration)))
 
         def write():
-            os.makedirs(out, exist_ok=True)
-            normals, albedo = np.asarray(res.normals), np.asarray(res.albedo)
-            path = lambda name: os.path.join(out, name)
-            # The files are independent, and PNG encoding and numpy release the GIL: on two
-            # threads the 1 MP outputs took about two-thirds of the time of one after another.
-            with ThreadPoolExecutor(min(2, os.cpu_count() or 1)) as pool:
-                jobs = [pool.submit(write_meshes, out, height, ok, albedo, normals, obj=obj,
-                                    points=points),
-                        pool.submit(write_albedo, path("albedo.png"), albedo),
-                        pool.submit(write_normal_map, path("normals.png"), normals),
-                        pool.submit(write_preview, path("preview.png"), normals, albedo,
-                                    height, ok,
-                                    title=f"{cap.names[0]} ... ({len(cap.names)} frames)"),
-                        pool.submit(np.save, path("height.npy"), height),
-                        pool.submit(np.save, path("status.npy"), np.asarray(res.status))]
-                meshes, scale = (job.result() for job in jobs[:2])
-                for job in jobs[2:]:
-                    job.result()
-            return scale, meshes["faces"]
+            return _write_outputs(out, res, height, ok, obj=obj, points=points,
+                                 title=f"{cap.names[0]} ... ({len(cap.names)} frames)")
 
         scale, faces = stages.run("write outputs", write)
     finally:
@@ -161,6 +144,31 @@ def reconstruct(
     if report:
         write_report(out)
     return summary
+
+
+def _write_outputs(out, res, height, ok, *, obj=False, points=False, title="", threads=2):
+    """`reconstruct`'s files in the folder `out`: normals.png, albedo.png, height.npy,
+    status.npy, mesh.ply (and the OBJ or point cloud on request), preview.png. Returns the
+    albedo PNG's scale and the mesh's face count.
+
+    The files are independent, and PNG encoding and numpy release the GIL, so they are written
+    on `threads` threads (`benchmarks/bench_io.py` times one against two)."""
+    os.makedirs(out, exist_ok=True)
+    normals, albedo = np.asarray(res.normals), np.asarray(res.albedo)
+    path = lambda name: os.path.join(out, name)
+    with ThreadPoolExecutor(max(1, min(threads, os.cpu_count() or 1))) as pool:
+        jobs = [pool.submit(write_meshes, out, height, ok, albedo, normals, obj=obj,
+                            points=points),
+                pool.submit(write_albedo, path("albedo.png"), albedo),
+                pool.submit(write_normal_map, path("normals.png"), normals),
+                pool.submit(write_preview, path("preview.png"), normals, albedo, height, ok,
+                            title=title),
+                pool.submit(np.save, path("height.npy"), height),
+                pool.submit(np.save, path("status.npy"), np.asarray(res.status))]
+        meshes, scale = (job.result() for job in jobs[:2])
+        for job in jobs[2:]:
+            job.result()
+    return scale, meshes["faces"]
 
 
 def _motion(cap) -> dict:
