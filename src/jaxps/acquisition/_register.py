@@ -247,9 +247,10 @@ def estimate_shifts(
     # fast FFT lengths; the FFTs take complex input (numpy's real-input fft2 was 2-7x slower).
     factor = max(1, round(np.sqrt((box[1] - box[0]) * (box[3] - box[2]) / WORK_PIXELS)))
     win = _window(*(_fast_len((box[j + 1] - box[j]) // factor) for j in (0, 2)))
-    # numpy's unscaled FFTs (norm="backward" forward, "forward" inverse) ran 3-4x slower than
-    # its scaled ones (numpy 2.4: 21 ms against 5 ms for a 900x750 complex64 frame), so the
-    # transform scales by 1/n and the window by n: the same spectrum, to rounding.
+    # numpy's unscaled FFTs (norm="backward" forward, "forward" inverse) ran 2-3x slower than
+    # its scaled ones (numpy 2.4, complex64: 9.7 against 4.4 ms at 900x750, 22.8 against 8.7 ms
+    # at 1024x1280; `benchmarks/bench_io.py`), so the transform scales by 1/n and the window
+    # by n: the same spectrum, to rounding.
     win_n = win * np.float32(win.size)
     spectrum = lambda img: np.fft.fft2(_prepare(img, box, win_n, factor).astype(np.complex64),
                                        norm="forward")
@@ -262,10 +263,9 @@ def estimate_shifts(
             return np.zeros(2)
         return -factor * _phase_shift(a, b, upsample, normalization)
 
-    # Frames on a thread each (numpy's FFTs release the GIL): five 1 MP frames took about
-    # two-thirds of the time on this project's 2 cores. The search's small matrix products run
-    # on one BLAS thread: a multi-threaded BLAS on a busy machine made five 192x168 frames take
-    # 0.16 s instead of 0.01 s.
+    # Frames on a thread each: numpy's FFTs release the GIL. The search's small matrix products
+    # run on one BLAS thread: a multi-threaded BLAS on a busy machine made five 192x168 frames
+    # take 0.16 s instead of 0.01 s.
     with threadpool_limits(1, user_api="blas"), \
             ThreadPoolExecutor(min(k, os.cpu_count() or 1)) as pool:
         return np.array(list(pool.map(shift, range(k))), np.float64).reshape(k, 2)
