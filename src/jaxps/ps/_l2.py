@@ -240,6 +240,14 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
         return jax.vmap(_pixel_all_used, in_axes=(0, axis, 0, None, None))(
             *planes(images, sample_mask, mask), shared, thresholds)
 
+    def stacked(out):
+        """Normals (and colour albedo) stacked inside each branch of the `cond`: XLA-CPU then
+        writes the `(P, 3)` array in the pass that computes it. Stacked after the `cond`, the
+        three planes were written, then read and written again (`bench_core.py`). A single
+        albedo plane is left as it is: stacked inside, its reshape became a copy."""
+        normal, albedo, *rest = out
+        return jnp.stack(normal, -1), jnp.stack(albedo, -1) if c > 1 else albedo[0], *rest
+
     args = (images, lights, mask, sample_mask, thresholds)
     if lights.ndim == 2:
         # The flag pass costs one read of the images; it lets the branches take only the inputs
@@ -248,9 +256,10 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
         # lstsq), so the weighted one replaces the fast one whole rather than pixel by pixel:
         # a per-pixel merge made XLA-CPU fuse the weighted solve into every output.
         needs = all_used(*args)[-1]
-        out = jax.lax.cond(jnp.any(needs), weighted, lambda *a: all_used(*a)[:-1], *args)
+        out = jax.lax.cond(jnp.any(needs), lambda *a: stacked(weighted(*a)),
+                           lambda *a: stacked(all_used(*a)[:-1]), *args)
     else:
-        out = weighted(*args)
+        out = stacked(weighted(*args))
     normal, albedo, status, n_used, residual = out
-    return PSResult(jnp.stack(normal, -1).reshape(h, w, 3), jnp.stack(albedo, -1).reshape(h, w, c),
-                    status.reshape(h, w), n_used.reshape(h, w), residual.reshape(h, w))
+    return PSResult(normal.reshape(h, w, 3), albedo.reshape(h, w, c), status.reshape(h, w),
+                    n_used.reshape(h, w), residual.reshape(h, w))
