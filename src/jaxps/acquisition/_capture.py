@@ -22,7 +22,7 @@ from ._face import bucket_box, crop, detect_face
 from ._files import PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
 from ._register import _shift, estimate_shifts
-from ._stack import mask_from_intensity
+from ._stack import _subtract_ambient, mask_from_intensity
 
 __all__ = ["Capture", "load_capture"]
 
@@ -150,8 +150,7 @@ def load_capture(
                 f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, frames have "
                 f"{images.shape[1:]}"
             )
-        np.subtract(images, amb, out=images)  # subtract_ambient, in place: the stack is ours
-        np.maximum(images, 0, out=images)
+        images = _subtract_ambient(images, amb, out=images)  # in place: the stack is ours
 
     given = names
     if check_quality:

@@ -17,7 +17,14 @@ def subtract_ambient(
         raise ValueError(
             f"ambient frame has shape {ambient.shape}, frames have {images.shape[1:]}"
         )
-    return np.maximum(images - ambient[None], 0)
+    return _subtract_ambient(images, ambient, np.empty_like(images))
+
+
+def _subtract_ambient(images, ambient, out):
+    """`subtract_ambient` without its checks, written into `out` (which may be `images`:
+    `load_capture` subtracts in place from the stack it owns)."""
+    np.subtract(images, ambient, out=out)
+    return np.maximum(out, 0, out=out)
 
 
 def equalize_mean(
