@@ -64,6 +64,33 @@ def test_batch_l2_equals_single_calls_with_dropped_samples(colour, dtype):
     assert (np.asarray(batch.n_used) < 5).any()  # the weighted branch ran
 
 
+def test_batch_l2_in_place_equals_single_calls_with_per_capture_lights():
+    """The one-device L2 batch (each capture solved in place into the stacked outputs) gives
+    the single call's arrays (to float32 rounding: XLA fuses the two programs differently),
+    with per-capture lights and a capture that needs the weighted solve (a NaN sample) between
+    two that do not, from numpy and device input; the lax.map path (`vmap_size`) too."""
+    import jax
+
+    scenes, images = _captures()
+    lights = np.stack([np.asarray(scenes[0].lights) * s for s in (1.0, 2.0, 0.5)])
+    lights[2, 0] += [0.05, -0.02, 0.0]
+    images[1, 3, 5, 7] = np.nan
+    mask = np.asarray(scenes[0].mask)
+    for stack in (images, jax.device_put(images)):
+        batch = jaxps.photometric_stereo_batch(stack, lights, mask=mask)
+        for i in range(3):
+            single = jaxps.photometric_stereo(images[i], lights[i], mask=mask)
+            for name in ("normals", "albedo", "residual"):
+                np.testing.assert_allclose(getattr(batch, name)[i], getattr(single, name),
+                                           atol=1e-6, err_msg=f"{name}, capture {i}")
+            np.testing.assert_array_equal(batch.status[i], single.status)
+            np.testing.assert_array_equal(batch.n_used[i], single.n_used)
+    assert batch.n_used[1, 5, 7] == 4 and (np.asarray(batch.n_used[0])[mask] == 5).all()
+    mapped = jaxps.photometric_stereo_batch(images, lights, mask=mask, vmap_size=1)
+    np.testing.assert_allclose(mapped.normals, batch.normals, atol=1e-6)
+    np.testing.assert_array_equal(mapped.status, batch.status)
+
+
 def test_batch_chunks_and_list_input():
     scenes, images = _captures()
     lights = np.stack([scenes[0].lights] * 3)

@@ -1,16 +1,18 @@
 """Many captures at once: a leading capture axis, `jax.vmap` over captures, sharded across devices.
 
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
-captures of the same size in one jitted call: the single-capture solver is mapped over the
-capture axis with `jax.lax.map` (in sequence, or in `jax.vmap` groups of `vmap_size`), and
-when several devices are present the capture axis is split across them with `jax.sharding`
-(a 1-D mesh named `"captures"`). The results equal N separate
-`photometric_stereo` calls. `jaxps.reconstruct_many` (`cli/_reconstruct.py`) runs capture
+captures of the same size into `(N, ...)` outputs. On one device the L2 solve writes each
+capture's results straight into the stacked outputs (`_l2_in_place`); other methods map the
+single-capture solver over the capture axis in one jitted call with `jax.lax.map` (in
+sequence, or in `jax.vmap` groups of `vmap_size`), and when several devices are present the
+capture axis is split across them with `jax.sharding` (a 1-D mesh named `"captures"`). The
+results equal N separate `photometric_stereo` calls. `jaxps.reconstruct_many` (`cli/_reconstruct.py`) runs capture
 folders through loading, quality checks and the solve with one progress bar and a summary table.
 """
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 
 import jax
@@ -20,12 +22,14 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._host import aligned_empty
 from ..lights._directions import validate_lights
-from ._l2 import PSResult
-from ._photometric_stereo import PS_METHODS, photometric_stereo
+from ._l2 import PSResult, host_constants, l2_into, l2_needs_weights
+from ._photometric_stereo import PS_METHODS, _sample_thresholds, photometric_stereo
 
 __all__ = ["photometric_stereo_batch"]
 
 _CACHE: dict = {}
+# Options of the L2 solve that `_l2_in_place` handles; any other goes the general way.
+_L2_OPTIONS = frozenset({"shadow_threshold", "saturation", "dark_threshold"})
 
 
 def _stack_captures(images):
@@ -89,6 +93,45 @@ def _batched_fn(method, options, shared_lights, shared_mask, vmap_size):
     return fn
 
 
+@functools.partial(jax.jit, static_argnums=(0, 1, 2))
+def _l2_outputs(n, shape, dtype):
+    """Zeroed `(N, ...)` outputs of an L2 batch; `shape` is one capture's `(H, W[, C])`."""
+    h, w = shape[:2]
+    return (jnp.zeros((n, h, w, 3), dtype), jnp.zeros((n, *shape), dtype),
+            jnp.zeros((n, h, w), jnp.int32), jnp.zeros((n, h, w), jnp.int32),
+            jnp.zeros((n, h, w), dtype))
+
+
+def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, options):
+    """The L2 batch on one device: each capture's "some sample dropped" test (`ps_l2`'s `cond`)
+    runs first and comes back to the host, then the chosen solve writes the capture's results
+    straight into the stacked outputs (`l2_into`, donated). A capture is read twice while it is
+    still in the cache, as in a single call, and nothing is copied after it is solved; inside
+    one jitted `lax.map` each capture was copied out of the stack into the `cond` and its
+    results copied into the outputs (docs/speed.md)."""
+    n, k = images.shape[:2]
+    dtype = images.dtype
+    solve_dtype = np.float32 if dtype == np.float16 else dtype
+    thresholds = tuple(jnp.asarray(t, solve_dtype) for t in _sample_thresholds(**options))
+    lights = np.asarray(lights, np.float64)
+    lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
+
+    def constants(lt):  # once for shared lights; the pseudo-inverse etc. on the host
+        return jax.device_put(lt.astype(solve_dtype)), jax.device_put(host_constants(lt))
+
+    shared = constants(lights) if shared_lights else None
+    mask = jax.device_put(mask) if shared_mask else mask
+    out = _l2_outputs(n, tuple(images.shape[2:]), dtype)
+    for i in range(n):
+        x = images[i] if isinstance(images, jax.Array) else jax.device_put(images[i])
+        lt, consts = shared if shared_lights else constants(lights[i])
+        msk = mask if shared_mask else jax.device_put(mask[i])
+        smask = None if sample_mask is None else jax.device_put(sample_mask[i])
+        weighted = bool(l2_needs_weights(x, msk, smask, thresholds, consts))
+        out = l2_into(out, i, x, lt, msk, smask, thresholds, consts, weighted=weighted)
+    return PSResult(*out)
+
+
 def photometric_stereo_batch(
     images: Float[ArrayLike, "N K H W *C"] | Sequence[Float[ArrayLike, "K H W *C"]],
     lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "N K 3"],
@@ -113,10 +156,11 @@ def photometric_stereo_batch(
       all.
     - `vmap_size`: captures vectorised together with `jax.vmap` inside one call; the groups run
       one after another (`jax.lax.map(..., batch_size=vmap_size)`). `None` (default) runs the
-      captures one after another inside the one call, which on a CPU is the fastest: the
-      pixels of one capture already fill the cores, and under `vmap` the L2 solver's branch on
-      "some sample dropped" (a `lax.cond`) evaluates both sides. See docs/captures.md for the
-      measured ratios.
+      captures one after another, which on a CPU is the fastest: the pixels of one capture
+      already fill the cores, and under `vmap` the L2 solver's branch on "some sample dropped"
+      (a `lax.cond`) evaluates both sides. With `method="l2"` on one device each capture is
+      then a call of its own that writes its results in place into the stacked outputs, and
+      `chunk` has nothing to bound. See docs/speed.md for the measured ratios.
 
     With several devices the whole chunk is vmapped and its capture axis padded to a multiple
     of the device count and sharded across them (a 1-D mesh `"captures"`).
@@ -155,6 +199,10 @@ def photometric_stereo_batch(
 
     if vmap_size is not None and not (isinstance(vmap_size, int) and vmap_size >= 1):
         raise ValueError(f"vmap_size must be a positive int or None, got {vmap_size!r}")
+    if (method == "l2" and vmap_size is None and len(jax.devices()) == 1
+            and set(options) <= _L2_OPTIONS and not isinstance(images, jax.core.Tracer)):
+        return _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask,
+                            options)
     fn = _batched_fn(method, options, shared_lights, shared_mask,
                      "all" if len(jax.devices()) > 1 else vmap_size)
     devices = jax.devices()

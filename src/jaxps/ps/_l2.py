@@ -23,7 +23,7 @@ from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["PSResult", "host_constants", "ps_l2"]
+__all__ = ["PSResult", "host_constants", "l2_into", "l2_needs_weights", "ps_l2"]
 
 
 class PSResult(NamedTuple):
@@ -198,6 +198,51 @@ def host_constants(lights: np.ndarray) -> tuple[np.ndarray, ...]:
     return lights, np.linalg.pinv(lights), u[:, 3:].T, lights.T @ lights, full_rank
 
 
+def _planes(images, sample_mask, mask):
+    """One `(H*W,)` plane per sample and channel of `(K, H, W, C)` or grey `(K, H, W)` images,
+    the usable planes (or K `True`s) and the mask."""
+    k = images.shape[0]
+    if images.ndim == 3:  # sliced as it is: a channel axis added first changed XLA's fusions
+        x = [[images[i].reshape(-1)] for i in range(k)]
+    else:
+        x = [[images[i, :, :, j].reshape(-1) for j in range(images.shape[3])] for i in range(k)]
+    usable = [True] * k if sample_mask is None else [sample_mask[i].reshape(-1) for i in range(k)]
+    return x, usable, mask.reshape(-1)
+
+
+def _solve_all_used(images, mask, sample_mask, thresholds, shared):
+    """`_pixel_all_used` over every pixel: the outputs, then the "re-solve needed" flags."""
+    axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
+    return jax.vmap(_pixel_all_used, in_axes=(0, axis, 0, None, None))(
+        *_planes(images, sample_mask, mask), shared, thresholds)
+
+
+def _solve_weighted(images, lights, mask, sample_mask, thresholds):
+    """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights."""
+    k = images.shape[0]
+    per_pixel = lights.ndim == 4
+    if per_pixel:
+        lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
+        lt = [[lights[i, ..., p].reshape(-1) for p in range(3)] for i in range(k)]
+    else:
+        lt = [[lights[i, p] for p in range(3)] for i in range(k)]
+    axis = None if sample_mask is None else 0
+    return jax.vmap(_pixel_weighted, in_axes=(0, axis, 0, 0 if per_pixel else None, None))(
+        *_planes(images, sample_mask, mask), lt, thresholds)
+
+
+def _stacked(out):
+    """Normals (and colour albedo) stacked here, in the pass that computes them. Stacked after
+    a `cond`, the three planes were written, then read and written again (`bench_core.py`). A
+    single albedo plane is left as it is: stacked inside, its reshape became a copy."""
+    normal, albedo, *rest = out
+    return jnp.stack(normal, -1), jnp.stack(albedo, -1) if len(albedo) > 1 else albedo[0], *rest
+
+
+def _cast_shared(shared, dtype):
+    return tuple(a.astype(dtype) if a.dtype != bool else a for a in shared)
+
+
 @jax.jit
 def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
     """Jitted core. `images` `(K, H, W, C)`; `lights` `(K, 3)` or `(K, H, W, 3)`;
@@ -210,56 +255,63 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
     transposed copy), while separate planes are read in place. Shared lights take a single
     pass with $L^+$ (`_pixel_all_used`); only if some pixel in the mask dropped a sample is the
     image solved again with per-pixel weights, a real branch outside `vmap` (under `vmap` over
-    captures `lax.cond` runs both; `photometric_stereo_batch` maps captures in sequence).
+    captures `lax.cond` runs both; `photometric_stereo_batch` makes the same choice on the
+    host, capture by capture, with `l2_needs_weights` and `l2_into`).
     """
     k, h, w, c = images.shape
-    axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
-
-    def planes(images, sample_mask, mask):
-        x = [[images[i, :, :, j].reshape(-1) for j in range(c)] for i in range(k)]
-        usable = ([True] * k if sample_mask is None
-                  else [sample_mask[i].reshape(-1) for i in range(k)])
-        return x, usable, mask.reshape(-1)
-
-    def weighted(images, lights, mask, sample_mask, thresholds):
-        per_pixel = lights.ndim == 4
-        if per_pixel:
-            lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
-            lt = [[lights[i, ..., p].reshape(-1) for p in range(3)] for i in range(k)]
-        else:
-            lt = [[lights[i, p] for p in range(3)] for i in range(k)]
-        return jax.vmap(_pixel_weighted, in_axes=(0, axis, 0, 0 if per_pixel else None, None))(
-            *planes(images, sample_mask, mask), lt, thresholds)
-
     if shared is None and lights.ndim == 2:
         shared = _shared_constants(lights)
     elif shared is not None:
-        shared = tuple(a.astype(images.dtype) if a.dtype != bool else a for a in shared)
+        shared = _cast_shared(shared, images.dtype)
 
-    def all_used(images, lights, mask, sample_mask, thresholds):
-        return jax.vmap(_pixel_all_used, in_axes=(0, axis, 0, None, None))(
-            *planes(images, sample_mask, mask), shared, thresholds)
-
-    def stacked(out):
-        """Normals (and colour albedo) stacked inside each branch of the `cond`: XLA-CPU then
-        writes the `(P, 3)` array in the pass that computes it. Stacked after the `cond`, the
-        three planes were written, then read and written again (`bench_core.py`). A single
-        albedo plane is left as it is: stacked inside, its reshape became a copy."""
-        normal, albedo, *rest = out
-        return jnp.stack(normal, -1), jnp.stack(albedo, -1) if c > 1 else albedo[0], *rest
-
-    args = (images, lights, mask, sample_mask, thresholds)
     if lights.ndim == 2:
         # The flag pass costs one read of the images; it lets the branches take only the inputs
         # as operands (planes or results built outside a `cond` would be copied into it). Where
         # no sample is dropped the two solves agree to rounding (the tests hold both to numpy
         # lstsq), so the weighted one replaces the fast one whole rather than pixel by pixel:
         # a per-pixel merge made XLA-CPU fuse the weighted solve into every output.
-        needs = all_used(*args)[-1]
-        out = jax.lax.cond(jnp.any(needs), lambda *a: stacked(weighted(*a)),
-                           lambda *a: stacked(all_used(*a)[:-1]), *args)
+        needs = _solve_all_used(images, mask, sample_mask, thresholds, shared)[-1]
+        out = jax.lax.cond(
+            jnp.any(needs),
+            lambda *a: _stacked(_solve_weighted(*a)),
+            lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared)[:-1]),
+            images, lights, mask, sample_mask, thresholds)
     else:
-        out = stacked(weighted(*args))
+        out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds))
     normal, albedo, status, n_used, residual = out
     return PSResult(normal.reshape(h, w, 3), albedo.reshape(h, w, c), status.reshape(h, w),
                     n_used.reshape(h, w), residual.reshape(h, w))
+
+
+@jax.jit
+def l2_needs_weights(images, mask, sample_mask, thresholds, shared):
+    """Whether any pixel in `mask` must be solved by `_pixel_weighted` (a sample non-finite,
+    saturated, shadowed or not in `sample_mask`): `ps_l2`'s branch, taken on the host.
+    Arguments as in `l2_into`."""
+    if images.dtype == jnp.float16:
+        images = images.astype(jnp.float32)
+    shared = _cast_shared(shared, images.dtype)
+    return jnp.any(_solve_all_used(images, mask, sample_mask, thresholds, shared)[-1])
+
+
+@functools.partial(jax.jit, static_argnames="weighted", donate_argnums=0)
+def l2_into(out, index, images, lights, mask, sample_mask, thresholds, shared, *, weighted):
+    """`ps_l2` of one capture written into slot `index` of stacked `(N, ...)` outputs.
+
+    `out`: the five `PSResult` arrays with a leading capture axis (albedo `(N, H, W)` for a
+    grey capture), in the output dtype; donated. With no `cond` around it, XLA-CPU fuses each
+    `dynamic-update-slice` into the pass that computes the values, so a capture's results are
+    written once, in place (the outputs of `ps_l2`'s `cond` would be copied in). `images`
+    `(K, H, W)` or `(K, H, W, C)` (float16 is solved in float32); `weighted`:
+    `l2_needs_weights` of the capture; `shared`: `host_constants(lights)`.
+    """
+    if images.dtype == jnp.float16:
+        images = images.astype(jnp.float32)
+    if weighted:
+        res = _solve_weighted(images, lights.astype(images.dtype), mask, sample_mask, thresholds)
+    else:
+        res = _solve_all_used(images, mask, sample_mask, thresholds,
+                              _cast_shared(shared, images.dtype))[:-1]
+    return tuple(jax.lax.dynamic_update_index_in_dim(o, v.reshape(o.shape[1:]).astype(o.dtype),
+                                                     index, 0)
+                 for o, v in zip(out, _stacked(res)))

@@ -39,6 +39,15 @@ PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
 _EAGER_SOLVERS = frozenset({"semi_calibrated", "oren_nayar"})
 
 
+def _sample_thresholds(shadow_threshold: float | None = None, saturation: float = 1.0,
+                      dark_threshold: float = 1e-3) -> tuple[float, float, float]:
+    """`(dark, saturation, shadow)` as the L2 kernels take them (see `photometric_stereo`)."""
+    for name, value in (("saturation", saturation), ("dark_threshold", dark_threshold)):
+        if not np.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value}")
+    return dark_threshold, saturation, -np.inf if shadow_threshold is None else shadow_threshold
+
+
 def _check_images(images) -> tuple[jax.Array | np.ndarray, bool]:
     # Host arrays stay on the host: the jitted solve takes them as arguments (in place when
     # 64-byte aligned, as `load_capture` returns them), where `jnp.asarray` would copy the
@@ -126,11 +135,7 @@ def photometric_stereo(
         raise ValueError(
             f"sample_mask must have shape (K, H, W) = {(k, h, w)}, got {np.shape(sample_mask)}"
         )
-    for name, value in (("saturation", saturation), ("dark_threshold", dark_threshold)):
-        if not np.isfinite(value):
-            raise ValueError(f"{name} must be finite, got {value}")
-    thresholds = (dark_threshold, saturation,
-                  -np.inf if shadow_threshold is None else shadow_threshold)
+    thresholds = _sample_thresholds(shadow_threshold, saturation, dark_threshold)
 
     # Arrays in `options` are traced; everything else (step limits, loss names, solver
     # objects) is static. Unhashable options fall back to running the wrapper eagerly.
