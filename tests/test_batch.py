@@ -91,6 +91,30 @@ def test_batch_l2_in_place_equals_single_calls_with_per_capture_lights():
     np.testing.assert_array_equal(mapped.status, batch.status)
 
 
+def test_batch_l2_reuses_out():
+    """`out=` takes an earlier result's arrays (donated) and returns this batch's results in
+    them, equal to a fresh batch; a result of the wrong shape, one already donated, or `out`
+    with another method is a ValueError that names `out`."""
+    scenes, images = _captures()
+    lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
+    first = jaxps.photometric_stereo_batch(images, lights, mask=mask)
+    fresh = jaxps.photometric_stereo_batch(images[::-1].copy(), lights, mask=mask)
+    pointer = first.normals.unsafe_buffer_pointer()
+    again = jaxps.photometric_stereo_batch(images[::-1].copy(), lights, mask=mask, out=first)
+    assert again.normals.unsafe_buffer_pointer() == pointer  # written in place
+    assert first.normals.is_deleted()
+    for name in ("normals", "albedo", "status", "n_used", "residual"):
+        np.testing.assert_array_equal(getattr(again, name), getattr(fresh, name), err_msg=name)
+    with pytest.raises(ValueError, match="out.normals was already donated"):
+        jaxps.photometric_stereo_batch(images, lights, mask=mask, out=first)
+    with pytest.raises(ValueError, match=r"out.normals must be a JAX array \(2, 32, 26, 3\)"):
+        jaxps.photometric_stereo_batch(images[:2], lights, mask=mask, out=again)
+    with pytest.raises(ValueError, match="out: reusing"):
+        jaxps.photometric_stereo_batch(images, lights, mask=mask, method="l1", out=again)
+    with pytest.raises(ValueError, match="out must be the PSResult"):
+        jaxps.photometric_stereo_batch(images, lights, mask=mask, out=tuple(again))
+
+
 def test_batch_chunks_and_list_input():
     scenes, images = _captures()
     lights = np.stack([scenes[0].lights] * 3)

@@ -58,6 +58,8 @@ ADDED = {
 # Issue 17: `load_capture` and `jaxps.cli.reconstruct` gained `register` (motion between frames
 # measured and undone by default) and `Capture` the fields `shifts` and `registered`; those three
 # entries rewritten.
+# Issue 18: `photometric_stereo_batch` gained `out` (a stream of batches writes into the previous
+# result's arrays); only that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

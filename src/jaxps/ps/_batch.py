@@ -102,13 +102,32 @@ def _l2_outputs(n, shape, dtype):
             jnp.zeros((n, h, w), dtype))
 
 
-def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, options):
+def _check_out(out, n, shape, dtype):
+    """`out`'s five arrays, checked against the `(N, H, W[, C])` batch they are to hold."""
+    if not isinstance(out, PSResult):
+        raise ValueError(f"out must be the PSResult of an earlier batch, got {type(out).__name__}")
+    h, w = shape[:2]
+    expected = [((n, h, w, 3), dtype), ((n, *shape), dtype), ((n, h, w), np.int32),
+                ((n, h, w), np.int32), ((n, h, w), dtype)]
+    arrays = tuple(out[:5])
+    for name, a, (e_shape, e_dtype) in zip(PSResult._fields, arrays, expected):
+        if not isinstance(a, jax.Array) or a.shape != e_shape or a.dtype != e_dtype:
+            got = f"{getattr(a, 'shape', None)} {getattr(a, 'dtype', type(a).__name__)}"
+            raise ValueError(f"out.{name} must be a JAX array {e_shape} {np.dtype(e_dtype)} to "
+                             f"hold this batch, got {got}")
+        if a.is_deleted():
+            raise ValueError(f"out.{name} was already donated (passed as out= before)")
+    return arrays
+
+
+def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, options,
+                 out=None):
     """The L2 batch on one device: each capture's "some sample dropped" test (`ps_l2`'s `cond`)
     runs first and comes back to the host, then the chosen solve writes the capture's results
-    straight into the stacked outputs (`l2_into`, donated). A capture is read twice while it is
-    still in the cache, as in a single call, and nothing is copied after it is solved; inside
-    one jitted `lax.map` each capture was copied out of the stack into the `cond` and its
-    results copied into the outputs (docs/speed.md)."""
+    straight into the stacked outputs (`l2_into`, donated): `out`, or new zeroed arrays. The
+    two passes over a capture follow each other, as in a single call, and nothing is copied
+    after it is solved; inside one jitted `lax.map` each capture was copied out of the stack
+    into the `cond` and its results copied into the outputs (docs/speed.md)."""
     n, k = images.shape[:2]
     dtype = images.dtype
     solve_dtype = np.float32 if dtype == np.float16 else dtype
@@ -121,7 +140,8 @@ def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, 
 
     shared = constants(lights) if shared_lights else None
     mask = jax.device_put(mask) if shared_mask else mask
-    out = _l2_outputs(n, tuple(images.shape[2:]), dtype)
+    if out is None:
+        out = _l2_outputs(n, tuple(images.shape[2:]), dtype)
     for i in range(n):
         x = images[i] if isinstance(images, jax.Array) else jax.device_put(images[i])
         lt, consts = shared if shared_lights else constants(lights[i])
@@ -141,6 +161,7 @@ def photometric_stereo_batch(
     method: str = "l2",
     chunk: int | None = None,
     vmap_size: int | None = None,
+    out: PSResult | None = None,
     **options,
 ) -> PSResult:
     """Photometric stereo on N captures at once (`jax.vmap` over the capture axis).
@@ -162,13 +183,22 @@ def photometric_stereo_batch(
       then a call of its own that writes its results in place into the stacked outputs, and
       `chunk` has nothing to bound. See docs/speed.md for the measured ratios.
 
+    - `out`: the `PSResult` of an earlier batch of the same shape and dtype, whose arrays are
+      overwritten with this batch's results and returned (they are donated: the old result is
+      unusable afterwards). For a stream of batches, pass each result back once it has been
+      used: the outputs are then written to memory the process already holds. Fresh `(N, ...)`
+      outputs are large enough that the allocator maps new pages for every batch, and the
+      first write to each 4 KiB page costs a page fault; at 8 x 1 MP that is most of the
+      batch's time (docs/speed.md). Only for `method="l2"` on one device.
+
     With several devices the whole chunk is vmapped and its capture axis padded to a multiple
     of the device count and sharded across them (a 1-D mesh `"captures"`).
 
     **Returns:** a `PSResult` whose arrays have a leading N axis (`info` entries too).
 
     **Raises:** `ValueError` for captures of different sizes (naming the capture), or shapes of
-    `lights`/`mask` that do not match.
+    `lights`/`mask` that do not match, or an `out` that does not match the batch or cannot be
+    used here.
     """
     if method not in PS_METHODS:
         raise ValueError(f"method must be one of {PS_METHODS}, got {method!r}")
@@ -201,8 +231,13 @@ def photometric_stereo_batch(
         raise ValueError(f"vmap_size must be a positive int or None, got {vmap_size!r}")
     if (method == "l2" and vmap_size is None and len(jax.devices()) == 1
             and set(options) <= _L2_OPTIONS and not isinstance(images, jax.core.Tracer)):
+        if out is not None:
+            out = _check_out(out, n, images.shape[2:], images.dtype)
         return _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask,
-                            options)
+                            options, out)
+    if out is not None:
+        raise ValueError("out: reusing a result is supported for method='l2' on one device "
+                         "with vmap_size=None only")
     fn = _batched_fn(method, options, shared_lights, shared_mask,
                      "all" if len(jax.devices()) > 1 else vmap_size)
     devices = jax.devices()
