@@ -81,6 +81,17 @@ def time_calls(fn, repeats: int = 3) -> dict:
             "run_s_median": statistics.median(runs)}
 
 
+def page_faults(fn) -> int:
+    """Minor page faults of one more call of `fn()` (waited for): first writes to 4 KiB pages
+    that the allocator has just taken from the kernel. glibc maps allocations of 32 MiB and
+    more afresh every time, so large outputs pay one per page on every call."""
+    import resource
+
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    block(fn())
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
+
+
 def environment() -> dict:
     """What the figures were measured on (thread settings included)."""
     import jax

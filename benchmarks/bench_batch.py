@@ -35,10 +35,10 @@ N_BIG = 8 if QUICK else 64
 
 
 try:
-    from benchmarks._common import timed
+    from benchmarks._common import page_faults, timed
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import timed
+    from benchmarks._common import page_faults, timed
 
 
 def captures(n, seed=0):
@@ -50,14 +50,6 @@ def captures(n, seed=0):
     caps = np.stack([base * rng.uniform(0.85, 1.15, (K, 1, 1)).astype(np.float32)
                      for _ in range(n)]).astype(np.float32)
     return caps, lights, np.asarray(scene.mask)
-
-
-def page_faults(fn):
-    """Minor page faults of one more call of `fn`: each first write to a fresh 4 KiB page of
-    an output buffer that the allocator took from the kernel."""
-    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-    jax.block_until_ready(fn())
-    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
 
 
 def peak_rss(n, chunk):

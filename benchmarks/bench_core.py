@@ -28,12 +28,12 @@ import scipy.fft
 import jaxps
 
 try:
-    from benchmarks._common import environment, time_calls
+    from benchmarks._common import environment, page_faults, time_calls
 except ImportError:  # run as a script
     import pathlib
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, time_calls
+    from benchmarks._common import environment, page_faults, time_calls
 
 H, W = 1024, 1280
 
@@ -170,8 +170,13 @@ def scaling_rows(repeats, sizes):
         normals = jax.block_until_ready(jaxps.photometric_stereo(images, lights).normals)
         _, fc = timed(lambda: jaxps.integrate(normals), repeats)
         mp = h * w / 1e6
+        faults = {"ps_l2_page_faults_per_kpx": page_faults(
+                      lambda: jaxps.photometric_stereo(images, lights)) / (1e3 * mp),
+                  "fc_page_faults_per_kpx": page_faults(
+                      lambda: jaxps.integrate(normals)) / (1e3 * mp)}
         rows.append({"rows": h, "columns": w, "megapixels": mp, "ps_l2_s": ps, "fc_s": fc,
-                     "ps_l2_ns_per_px": 1e3 * ps / mp, "fc_ns_per_px": 1e3 * fc / mp})
+                     "ps_l2_ns_per_px": 1e3 * ps / mp, "fc_ns_per_px": 1e3 * fc / mp,
+                     **faults})
     return rows
 
 
@@ -223,8 +228,9 @@ def main():
         print(f"{r['work']:>14} K={r.get('K', '-'):>2} {r['impl']:<32} "
               f"{1e3 * r['run_s']:8.2f} ms{ratio}{comp}")
     for r in results["scaling"]:
-        print(f"{r['rows']:>5}x{r['columns']:<5} PS {r['ps_l2_ns_per_px']:6.2f} ns/px, "
-              f"FC {r['fc_ns_per_px']:6.2f} ns/px")
+        print(f"{r['rows']:>5}x{r['columns']:<5} PS {r['ps_l2_ns_per_px']:6.2f} ns/px "
+              f"({r['ps_l2_page_faults_per_kpx']:.2f} page faults per 1000 px), "
+              f"FC {r['fc_ns_per_px']:6.2f} ns/px ({r['fc_page_faults_per_kpx']:.2f})")
     print("peak memory:", results["peak_memory"])
     _chart(results, args.out.replace(".json", ".png"))
 
