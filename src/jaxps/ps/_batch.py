@@ -6,8 +6,9 @@ capture's results straight into the stacked outputs (`_l2_in_place`); other meth
 single-capture solver over the capture axis in one jitted call with `jax.lax.map` (in
 sequence, or in `jax.vmap` groups of `vmap_size`), and when several devices are present the
 capture axis is split across them with `jax.sharding` (a 1-D mesh named `"captures"`). The
-results equal N separate `photometric_stereo` calls. `jaxps.reconstruct_many` (`cli/_reconstruct.py`) runs capture
-folders through loading, quality checks and the solve with one progress bar and a summary table.
+results equal N separate `photometric_stereo` calls. `jaxps.reconstruct_many`
+(`cli/_reconstruct.py`) runs capture folders through loading, quality checks and the solve with
+one progress bar and a summary table.
 """
 
 from __future__ import annotations
@@ -128,7 +129,7 @@ def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, 
     two passes over a capture follow each other, as in a single call, and nothing is copied
     after it is solved; inside one jitted `lax.map` each capture was copied out of the stack
     into the `cond` and its results copied into the outputs (docs/speed.md)."""
-    n, k = images.shape[:2]
+    n = images.shape[0]
     dtype = images.dtype
     solve_dtype = np.float32 if dtype == np.float16 else dtype
     thresholds = tuple(jnp.asarray(t, solve_dtype) for t in _sample_thresholds(**options))
@@ -182,14 +183,13 @@ def photometric_stereo_batch(
       (a `lax.cond`) evaluates both sides. With `method="l2"` on one device each capture is
       then a call of its own that writes its results in place into the stacked outputs, and
       `chunk` has nothing to bound. See docs/speed.md for the measured ratios.
-
     - `out`: the `PSResult` of an earlier batch of the same shape and dtype, whose arrays are
       overwritten with this batch's results and returned (they are donated: the old result is
       unusable afterwards). For a stream of batches, pass each result back once it has been
       used: the outputs are then written to memory the process already holds. Fresh `(N, ...)`
       outputs are large enough that the allocator maps new pages for every batch, and the
-      first write to each 4 KiB page costs a page fault; at 8 x 1 MP that is most of the
-      batch's time (docs/speed.md). Only for `method="l2"` on one device.
+      first write to each 4 KiB page costs a page fault (at 8 x 1 MP, a third of the batch's
+      time in `benchmarks/bench_batch.py`). Only for `method="l2"` on one device.
 
     With several devices the whole chunk is vmapped and its capture axis padded to a multiple
     of the device count and sharded across them (a 1-D mesh `"captures"`).
