@@ -98,6 +98,7 @@ def test_batch_l2_reuses_out():
     scenes, images = _captures()
     lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
     first = jaxps.photometric_stereo_batch(images, lights, mask=mask)
+    first_fresh = jaxps.photometric_stereo_batch(images, lights, mask=mask)
     fresh = jaxps.photometric_stereo_batch(images[::-1].copy(), lights, mask=mask)
     pointer = first.normals.unsafe_buffer_pointer()
     again = jaxps.photometric_stereo_batch(images[::-1].copy(), lights, mask=mask, out=first)
@@ -113,6 +114,10 @@ def test_batch_l2_reuses_out():
         jaxps.photometric_stereo_batch(images, lights, mask=mask, method="l1", out=again)
     with pytest.raises(ValueError, match="out must be the PSResult"):
         jaxps.photometric_stereo_batch(images, lights, mask=mask, out=tuple(again))
+    # float64 input is float32 in JAX without x64: outputs and `out` follow, without a warning
+    wide = jaxps.photometric_stereo_batch(images.astype(np.float64), lights, mask=mask, out=again)
+    assert wide.normals.dtype == np.float32
+    np.testing.assert_allclose(wide.normals, first_fresh.normals, atol=1e-6)
 
 
 def test_batch_chunks_and_list_input():

@@ -130,7 +130,7 @@ def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, 
     after it is solved; inside one jitted `lax.map` each capture was copied out of the stack
     into the `cond` and its results copied into the outputs (docs/speed.md)."""
     n = images.shape[0]
-    dtype = images.dtype
+    dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
     solve_dtype = np.float32 if dtype == np.float16 else dtype
     thresholds = tuple(jnp.asarray(t, solve_dtype) for t in _sample_thresholds(**options))
     lights = np.asarray(lights, np.float64)
@@ -232,7 +232,8 @@ def photometric_stereo_batch(
     if (method == "l2" and vmap_size is None and len(jax.devices()) == 1
             and set(options) <= _L2_OPTIONS and not isinstance(images, jax.core.Tracer)):
         if out is not None:
-            out = _check_out(out, n, images.shape[2:], images.dtype)
+            out = _check_out(out, n, images.shape[2:],
+                             jax.dtypes.canonicalize_dtype(images.dtype))
         return _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask,
                             options, out)
     if out is not None:
