@@ -120,12 +120,17 @@ def test_batch_l2_reuses_out():
     np.testing.assert_allclose(wide.normals, first_fresh.normals, atol=1e-6)
 
 
-def test_batch_chunks_and_list_input():
+@pytest.mark.parametrize("vmap_size", [None, 1])
+def test_batch_chunks_and_list_input(vmap_size):
+    """Chunks of 2 of a list of 3 captures equal the whole batch; with `vmap_size` the L2 batch
+    takes the jitted `lax.map` path, whose chunks are solved apart and concatenated."""
     scenes, images = _captures()
     lights = np.stack([scenes[0].lights] * 3)
     whole = jaxps.photometric_stereo_batch(images, lights)
-    chunked = jaxps.photometric_stereo_batch(list(images), lights, chunk=2)
+    chunked = jaxps.photometric_stereo_batch(list(images), lights, chunk=2, vmap_size=vmap_size)
+    assert chunked.normals.shape == whole.normals.shape
     np.testing.assert_allclose(whole.normals, chunked.normals, atol=1e-6)
+    np.testing.assert_array_equal(whole.status, chunked.status)
 
 
 def test_batch_rejects_different_sizes():
