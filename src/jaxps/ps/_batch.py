@@ -1,4 +1,4 @@
-"""Many captures at once: a leading capture axis, `jax.vmap` over captures, sharded across devices.
+"""Many captures at once: stacked `(N, ...)` outputs, in place per capture or mapped and sharded.
 
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
 captures of the same size into `(N, ...)` outputs. On one device the L2 solve writes each
@@ -165,7 +165,7 @@ def photometric_stereo_batch(
     out: PSResult | None = None,
     **options,
 ) -> PSResult:
-    """Photometric stereo on N captures at once (`jax.vmap` over the capture axis).
+    """Photometric stereo on N captures of one size at once, into `(N, ...)` outputs.
 
     **Arguments:**
     - `images`: `(N, K, H, W)` or `(N, K, H, W, C)`, or a list of N `(K, H, W[, C])` captures
