@@ -258,7 +258,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
     captures `lax.cond` runs both; `photometric_stereo_batch` makes the same choice on the
     host, capture by capture, with `l2_needs_weights` and `l2_into`).
     """
-    k, h, w, c = images.shape
+    h, w, c = images.shape[1:]
     if shared is None and lights.ndim == 2:
         shared = _shared_constants(lights)
     elif shared is not None:
