@@ -109,20 +109,18 @@ def main():
         _, first, run = timed(fn, repeats=5)
         res[name] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run,
                      "page_faults": page_faults(fn)}
-    res["batch_over_single_throughput"] = (res["batch_l2"]["captures_per_s"]
-                                           / res["single_calls_l2"]["captures_per_s"])
-    res["batch_over_single_throughput_aligned"] = (
-        res["batch_l2_aligned"]["captures_per_s"]
-        / res["single_calls_l2_aligned"]["captures_per_s"])
-    res["batch_over_single_throughput_on_device"] = (
-        res["batch_l2_on_device"]["captures_per_s"]
-        / res["single_calls_l2_on_device"]["captures_per_s"])
-    res["reusing_out_over_single_throughput_aligned"] = (
-        res["batch_l2_aligned_reusing_out"]["captures_per_s"]
-        / res["single_calls_l2_aligned"]["captures_per_s"])
-    res["lax_map_over_single_throughput_aligned"] = (
-        res["batch_l2_lax_map_aligned"]["captures_per_s"]
-        / res["single_calls_l2_aligned"]["captures_per_s"])
+    # Throughput ratios: each batch row against the single calls on the same input.
+    for key, batch, single in (
+            ("batch_over_single_throughput", "batch_l2", "single_calls_l2"),
+            ("batch_over_single_throughput_aligned", "batch_l2_aligned",
+             "single_calls_l2_aligned"),
+            ("batch_over_single_throughput_on_device", "batch_l2_on_device",
+             "single_calls_l2_on_device"),
+            ("reusing_out_over_single_throughput_aligned", "batch_l2_aligned_reusing_out",
+             "single_calls_l2_aligned"),
+            ("lax_map_over_single_throughput_aligned", "batch_l2_lax_map_aligned",
+             "single_calls_l2_aligned")):
+        res[key] = res[batch]["captures_per_s"] / res[single]["captures_per_s"]
     chunk = 8
     out = subprocess.run([sys.executable, __file__, "--peak-rss", str(N_BIG), str(chunk)]
                          + (["--quick"] if QUICK else []), capture_output=True, text=True,

@@ -40,8 +40,9 @@ def console() -> int:
     alone every object that exists once the command's modules are imported, and again at the
     end (`gc.freeze`). Without that, the collections during the run and at exit walk the
     objects of JAX's modules again and again: `benchmarks/bench_cli.py` times a warm
-    `jaxps reconstruct` of five 1 MP frames both ways (`gc_freeze` in `cli.json`). Objects are still freed by reference counting; only cycles
-    among frozen ones are left for the process's end.
+    `jaxps reconstruct` of five 1 MP frames both ways (`gc_freeze` in `cli.json`). Objects are
+    still freed by reference counting; only cycles among frozen ones are left for the
+    process's end.
     """
     return _run(None, freeze=True)
 

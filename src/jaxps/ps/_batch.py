@@ -214,8 +214,8 @@ def photometric_stereo_batch(
         lights = np.stack([validate_lights(lt) for lt in lights])
     else:
         raise ValueError(f"lights must be ({k}, 3) or ({n}, {k}, 3), got {lights.shape}")
-    if mask is None:
-        mask = np.ones((n, h, w), bool)
+    if mask is None:  # one all-true mask for every capture
+        mask = np.ones((h, w), bool)
     mask = np.asarray(mask, bool)
     shared_mask = mask.shape == (h, w)
     if not shared_mask and mask.shape != (n, h, w):
