@@ -1,10 +1,12 @@
 """Passes over memory in the compiled L2 programs: loop fusions and copies in XLA's HLO.
 
-Counts, for a 1280x1024 grey capture with K=5 shared lights (every sample used), the fusions
-and copies of the single-call program (`photometric_stereo`), of the batch's in-place solve
-(`l2_into`, grey `(K, H, W)` input as the batch passes it, and with a channel axis added
-first) and of its flag pass (`l2_needs_weights`), and whether `l2_into` has any fusion split
-across threads (`outer_dimension_partitions`).
+Counts, for a 1280x1024 grey capture with K=5 shared lights, the fusions and copies of the
+single-call program (`photometric_stereo`) and of the batch's three programs: its flag pass
+(`l2_needs_weights`), its solve (`l2_solve`, every sample used or weighted; grey `(K, H, W)`
+input as the batch passes it, and with a channel axis added first) and its in-place write
+(`l2_write`). Also the solve and the write traced as one program, as the batch did before:
+each `dynamic-update-slice` then fuses into the pass that computes its values. For each, how
+many fusions XLA-CPU splits across threads (`outer_dimension_partitions`).
 
 Run: `PYTHONPATH=src python benchmarks/hlo_l2.py` -> `benchmarks/results/hlo_l2.json`.
 """
@@ -20,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxps
-from jaxps.ps._l2 import host_constants, l2_into, l2_needs_weights
+from jaxps.ps._l2 import host_constants, l2_needs_weights, l2_solve, l2_write
 
 OUT = pathlib.Path(__file__).resolve().parent / "results" / "hlo_l2.json"
 N, K, H, W = 8, 5, 1024, 1280
@@ -45,18 +47,33 @@ def main():
            jax.ShapeDtypeStruct((N, H, W), jnp.float32),
            jax.ShapeDtypeStruct((N, H, W), jnp.int32), jax.ShapeDtypeStruct((N, H, W), jnp.int32),
            jax.ShapeDtypeStruct((N, H, W), jnp.float32))
+    flat = (jax.ShapeDtypeStruct((H * W, 3), jnp.float32),
+            *(jax.ShapeDtypeStruct((H * W,), d)
+              for d in (jnp.float32, jnp.int32, jnp.int32, jnp.float32)))
     single = jax.jit(lambda x: jaxps.photometric_stereo(x, lights))
+
+    def solve(x, weighted):
+        return l2_solve.lower(x, lt, mask, None, thresholds, shared, weighted=weighted,
+                              dtype=np.float32).compile().as_text()
+
+    def one_program(weighted):
+        return jax.jit(lambda o, x, li, m, t, s: l2_write(o, 0, l2_solve(
+            x, li, m, None, t, s, weighted=weighted, dtype=np.float32)), donate_argnums=0
+        ).lower(out, images, lt, mask, thresholds, shared).compile().as_text()
     res = {
         "shape": [K, H, W], "batch": N,
         "photometric_stereo": counts(single.lower(images).compile().as_text()),
-        "l2_into": counts(l2_into.lower(out, 0, images, lt, mask, None, thresholds, shared,
-                                        weighted=False).compile().as_text()),
+        "l2_solve": counts(solve(images, weighted=False)),
+        "l2_solve_weighted": counts(solve(images, weighted=True)),
         # The grey frames given a channel axis inside the program (as `_run` does for
         # `ps_l2`), then solved as `(K, H, W, 1)`.
-        "l2_into_channel_axis_added": counts(jax.jit(
-            lambda o, x, m, t, s: l2_into(o, 0, x[..., None], None, m, None, t, s,
-                                          weighted=False), donate_argnums=0
-        ).lower(out, images, mask, thresholds, shared).compile().as_text()),
+        "l2_solve_channel_axis_added": counts(jax.jit(
+            lambda x, li, m, t, s: l2_solve(x[..., None], li, m, None, t, s, weighted=False,
+                                            dtype=np.float32)
+        ).lower(images, lt, mask, thresholds, shared).compile().as_text()),
+        "l2_write": counts(l2_write.lower(out, 0, flat).compile().as_text()),
+        "l2_solve_and_write_in_one_program": counts(one_program(weighted=False)),
+        "l2_solve_weighted_and_write_in_one_program": counts(one_program(weighted=True)),
         "l2_needs_weights": counts(l2_needs_weights.lower(images, mask, None, thresholds,
                                                           shared).compile().as_text()),
     }

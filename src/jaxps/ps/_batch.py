@@ -1,8 +1,9 @@
 """Many captures at once: stacked `(N, ...)` outputs, in place per capture or mapped and sharded.
 
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
-captures of the same size into `(N, ...)` outputs. On one device the L2 solve writes each
-capture's results straight into the stacked outputs (`_l2_in_place`); other methods map the
+captures of the same size into `(N, ...)` outputs. On one device the L2 solve runs capture by
+capture and copies each one's results into the stacked outputs in place (`_l2_in_place`);
+other methods map the
 single-capture solver over the capture axis in one jitted call with `jax.lax.map` (in
 sequence, or in `jax.vmap` groups of `vmap_size`), and when several devices are present the
 capture axis is split across them with `jax.sharding` (a 1-D mesh named `"captures"`). The
@@ -23,7 +24,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._host import aligned_empty
 from ..lights._directions import validate_lights
-from ._l2 import PSResult, host_constants, l2_into, l2_needs_weights
+from ._l2 import PSResult, host_constants, l2_needs_weights, l2_solve, l2_write
 from ._photometric_stereo import PS_METHODS, _sample_thresholds, photometric_stereo
 
 __all__ = ["photometric_stereo_batch"]
@@ -123,12 +124,12 @@ def _check_out(out, n, shape, dtype):
 
 def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, options,
                  out=None):
-    """The L2 batch on one device: each capture's "some sample dropped" test (`ps_l2`'s `cond`)
-    runs first and comes back to the host, then the chosen solve writes the capture's results
-    straight into the stacked outputs (`l2_into`, donated): `out`, or new zeroed arrays. The
-    two passes over a capture follow each other, as in a single call, and nothing is copied
-    after it is solved; inside one jitted `lax.map` each capture was copied out of the stack
-    into the `cond` and its results copied into the outputs (docs/speed.md)."""
+    """The L2 batch on one device, capture by capture: the "some sample dropped" test
+    (`ps_l2`'s `cond`) comes back to the host, the chosen solve runs as a program of its own
+    (`l2_solve`, every pass on all threads), and `l2_write` copies its results into the
+    stacked outputs in place (donated): `out`, or new zeroed arrays. Inside one jitted
+    `lax.map` each capture was copied out of the stack into the `cond`; with the writes fused
+    into the solve, its passes ran on one thread (docs/speed.md, "Many captures")."""
     n = images.shape[0]
     dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
     solve_dtype = np.float32 if dtype == np.float16 else dtype
@@ -149,7 +150,8 @@ def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, 
         msk = mask if shared_mask else jax.device_put(mask[i])
         smask = None if sample_mask is None else jax.device_put(sample_mask[i])
         weighted = bool(l2_needs_weights(x, msk, smask, thresholds, consts))
-        out = l2_into(out, i, x, lt, msk, smask, thresholds, consts, weighted=weighted)
+        out = l2_write(out, i, l2_solve(x, lt, msk, smask, thresholds, consts,
+                                        weighted=weighted, dtype=dtype))
     return PSResult(*out)
 
 

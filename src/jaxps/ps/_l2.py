@@ -23,7 +23,7 @@ from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["PSResult", "host_constants", "l2_into", "l2_needs_weights", "ps_l2"]
+__all__ = ["PSResult", "host_constants", "l2_needs_weights", "l2_solve", "l2_write", "ps_l2"]
 
 
 class PSResult(NamedTuple):
@@ -256,7 +256,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
     pass with $L^+$ (`_pixel_all_used`); only if some pixel in the mask dropped a sample is the
     image solved again with per-pixel weights, a real branch outside `vmap` (under `vmap` over
     captures `lax.cond` runs both; `photometric_stereo_batch` makes the same choice on the
-    host, capture by capture, with `l2_needs_weights` and `l2_into`).
+    host, capture by capture, with `l2_needs_weights` and `l2_solve`).
     """
     h, w, c = images.shape[1:]
     if shared is None and lights.ndim == 2:
@@ -287,23 +287,26 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
 def l2_needs_weights(images, mask, sample_mask, thresholds, shared):
     """Whether any pixel in `mask` must be solved by `_pixel_weighted` (a sample non-finite,
     saturated, shadowed or not in `sample_mask`): `ps_l2`'s branch, taken on the host.
-    Arguments as in `l2_into`."""
+    Arguments as in `l2_solve`."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     shared = _cast_shared(shared, images.dtype)
     return jnp.any(_solve_all_used(images, mask, sample_mask, thresholds, shared)[-1])
 
 
-@functools.partial(jax.jit, static_argnames="weighted", donate_argnums=0)
-def l2_into(out, index, images, lights, mask, sample_mask, thresholds, shared, *, weighted):
-    """`ps_l2` of one capture written into slot `index` of stacked `(N, ...)` outputs.
+@functools.partial(jax.jit, static_argnames=("weighted", "dtype"))
+def l2_solve(images, lights, mask, sample_mask, thresholds, shared, *, weighted, dtype):
+    """`ps_l2` of one capture without its `cond`: the solve `weighted` chooses, flat.
 
-    `out`: the five `PSResult` arrays with a leading capture axis (albedo `(N, H, W)` for a
-    grey capture), in the output dtype; donated. With no `cond` around it, XLA-CPU fuses each
-    `dynamic-update-slice` into the pass that computes the values, so a capture's results are
-    written once, in place (the outputs of `ps_l2`'s `cond` would be copied in). `images`
-    `(K, H, W)` or `(K, H, W, C)` (float16 is solved in float32); `weighted`:
-    `l2_needs_weights` of the capture; `shared`: `host_constants(lights)`.
+    The batch's half of `ps_l2`: the branch is taken on the host (`l2_needs_weights`), and the
+    results go into the stacked outputs by `l2_write`, a program of its own. Written in the
+    same program, each output's `dynamic-update-slice` fused into the pass that computes it,
+    and XLA-CPU runs such a pass on one thread: at K=12, and for any capture that drops a
+    sample, that was 2-4x slower than a single call (docs/speed.md, "Many captures").
+
+    `images` `(K, H, W)` or `(K, H, W, C)` (float16 is solved in float32); `shared`:
+    `host_constants(lights)`. **Returns:** normals `(H*W, 3)`, albedo `(H*W[, C])`, status,
+    n_used and residual `(H*W,)`; normals, albedo and residual in `dtype`.
     """
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
@@ -312,6 +315,13 @@ def l2_into(out, index, images, lights, mask, sample_mask, thresholds, shared, *
     else:
         res = _solve_all_used(images, mask, sample_mask, thresholds,
                               _cast_shared(shared, images.dtype))[:-1]
-    return tuple(jax.lax.dynamic_update_index_in_dim(o, v.reshape(o.shape[1:]).astype(o.dtype),
-                                                     index, 0)
-                 for o, v in zip(out, _stacked(res)))
+    normal, albedo, status, n_used, residual = _stacked(res)
+    return normal.astype(dtype), albedo.astype(dtype), status, n_used, residual.astype(dtype)
+
+
+@functools.partial(jax.jit, donate_argnums=0)
+def l2_write(out, index, results):
+    """`l2_solve`'s `results` written into slot `index` of the stacked `(N, ...)` outputs
+    `out` (the five `PSResult` arrays), in place: `out` is donated."""
+    return tuple(jax.lax.dynamic_update_index_in_dim(o, r.reshape(o.shape[1:]), index, 0)
+                 for o, r in zip(out, results))
