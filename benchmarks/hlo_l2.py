@@ -4,9 +4,9 @@ Counts, for a 1280x1024 grey capture with K=5 shared lights, the fusions and cop
 single-call program (`photometric_stereo`) and of the batch's three programs: its flag pass
 (`l2_needs_weights`), its solve (`l2_solve`, every sample used or weighted; grey `(K, H, W)`
 input as the batch passes it, and with a channel axis added first) and its in-place write
-(`l2_write`). Also the solve and the write traced as one program, as the batch did before:
-each `dynamic-update-slice` then fuses into the pass that computes its values. For each, how
-many fusions XLA-CPU splits across threads (`outer_dimension_partitions`).
+(`l2_write`), and the two traced as one program (`l2_into`, which the batch takes for light
+captures): each `dynamic-update-slice` then fuses into the pass that computes its values. For
+each, how many fusions XLA-CPU splits across threads (`outer_dimension_partitions`).
 
 Run: `PYTHONPATH=src python benchmarks/hlo_l2.py` -> `benchmarks/results/hlo_l2.json`.
 """
@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxps
-from jaxps.ps._l2 import host_constants, l2_needs_weights, l2_solve, l2_write
+from jaxps.ps._l2 import host_constants, l2_into, l2_needs_weights, l2_solve, l2_write
 
 OUT = pathlib.Path(__file__).resolve().parent / "results" / "hlo_l2.json"
 N, K, H, W = 8, 5, 1024, 1280
@@ -57,9 +57,8 @@ def main():
                               dtype=np.float32).compile().as_text()
 
     def one_program(weighted):
-        return jax.jit(lambda o, x, li, m, t, s: l2_write(o, 0, l2_solve(
-            x, li, m, None, t, s, weighted=weighted, dtype=np.float32)), donate_argnums=0
-        ).lower(out, images, lt, mask, thresholds, shared).compile().as_text()
+        return l2_into.lower(out, 0, images, lt, mask, None, thresholds, shared,
+                             weighted=weighted, dtype=np.float32).compile().as_text()
     res = {
         "shape": [K, H, W], "batch": N,
         "photometric_stereo": counts(single.lower(images).compile().as_text()),
@@ -72,8 +71,8 @@ def main():
                                             dtype=np.float32)
         ).lower(images, lt, mask, thresholds, shared).compile().as_text()),
         "l2_write": counts(l2_write.lower(out, 0, flat).compile().as_text()),
-        "l2_solve_and_write_in_one_program": counts(one_program(weighted=False)),
-        "l2_solve_weighted_and_write_in_one_program": counts(one_program(weighted=True)),
+        "l2_into": counts(one_program(weighted=False)),
+        "l2_into_weighted": counts(one_program(weighted=True)),
         "l2_needs_weights": counts(l2_needs_weights.lower(images, mask, None, thresholds,
                                                           shared).compile().as_text()),
     }

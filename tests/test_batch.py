@@ -64,6 +64,23 @@ def test_batch_l2_equals_single_calls_with_dropped_samples(colour, dtype):
     assert (np.asarray(batch.n_used) < 5).any()  # the weighted branch ran
 
 
+def test_batch_l2_clean_colour_equals_single_calls():
+    """Colour captures that drop no sample (15 planes: solved on all threads, then copied into
+    the stacked outputs, where a grey one is solved and written in one program) equal single
+    calls."""
+    scenes, images = _captures()
+    images = images[..., None] * np.float32([1.0, 0.8, 0.6])
+    lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
+    batch = jaxps.photometric_stereo_batch(images, lights, mask=mask)
+    assert (np.asarray(batch.n_used)[:, mask] == 5).all()  # the clean solve, every sample used
+    for i in range(len(images)):
+        single = jaxps.photometric_stereo(images[i], lights, mask=mask)
+        for name in ("normals", "albedo", "residual"):
+            np.testing.assert_allclose(getattr(batch, name)[i], getattr(single, name),
+                                       atol=1e-6, err_msg=name)
+        np.testing.assert_array_equal(batch.status[i], single.status)
+
+
 def test_batch_l2_in_place_equals_single_calls_with_per_capture_lights():
     """The one-device L2 batch (each capture solved in place into the stacked outputs) gives
     the single call's arrays (to float32 rounding: XLA fuses the two programs differently),

@@ -24,7 +24,8 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._host import aligned_empty
 from ..lights._directions import validate_lights
-from ._l2 import PSResult, host_constants, l2_needs_weights, l2_solve, l2_write
+from ._l2 import (INTO_MAX_PLANES, PSResult, host_constants, l2_into, l2_needs_weights,
+                  l2_solve, l2_write)
 from ._photometric_stereo import PS_METHODS, _sample_thresholds, photometric_stereo
 
 __all__ = ["photometric_stereo_batch"]
@@ -125,11 +126,12 @@ def _check_out(out, n, shape, dtype):
 def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, options,
                  out=None):
     """The L2 batch on one device, capture by capture: the "some sample dropped" test
-    (`ps_l2`'s `cond`) comes back to the host, the chosen solve runs as a program of its own
-    (`l2_solve`, every pass on all threads), and `l2_write` copies its results into the
-    stacked outputs in place (donated): `out`, or new zeroed arrays. Inside one jitted
-    `lax.map` each capture was copied out of the stack into the `cond`; with the writes fused
-    into the solve, its passes ran on one thread (docs/speed.md, "Many captures")."""
+    (`ps_l2`'s `cond`) comes back to the host, then the chosen solve writes the capture's
+    results into the stacked outputs in place (donated): `out`, or new zeroed arrays. A light
+    capture (no sample dropped, at most `INTO_MAX_PLANES` planes) is solved and written in one
+    program (`l2_into`, no copy, its passes on one thread); any other is solved on all threads
+    (`l2_solve`), then copied in (`l2_write`). Inside one jitted `lax.map`, as before, each
+    capture was copied out of the stack into the `cond` (docs/speed.md, "Many captures")."""
     n = images.shape[0]
     dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
     solve_dtype = np.float32 if dtype == np.float16 else dtype
@@ -144,14 +146,18 @@ def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, 
     mask = jax.device_put(mask) if shared_mask else mask
     if out is None:
         out = _l2_outputs(n, tuple(images.shape[2:]), dtype)
+    planes = int(np.prod(images.shape[1:2] + images.shape[4:]))  # K x C
     for i in range(n):
         x = images[i] if isinstance(images, jax.Array) else jax.device_put(images[i])
         lt, consts = shared if shared_lights else constants(lights[i])
         msk = mask if shared_mask else jax.device_put(mask[i])
         smask = None if sample_mask is None else jax.device_put(sample_mask[i])
         weighted = bool(l2_needs_weights(x, msk, smask, thresholds, consts))
-        out = l2_write(out, i, l2_solve(x, lt, msk, smask, thresholds, consts,
-                                        weighted=weighted, dtype=dtype))
+        args = (x, lt, msk, smask, thresholds, consts)
+        if weighted or planes > INTO_MAX_PLANES:
+            out = l2_write(out, i, l2_solve(*args, weighted=weighted, dtype=dtype))
+        else:
+            out = l2_into(out, i, *args, weighted=False, dtype=dtype)
     return PSResult(*out)
 
 

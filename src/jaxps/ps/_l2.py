@@ -23,7 +23,8 @@ from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["PSResult", "host_constants", "l2_needs_weights", "l2_solve", "l2_write", "ps_l2"]
+__all__ = ["INTO_MAX_PLANES", "PSResult", "host_constants", "l2_into", "l2_needs_weights",
+           "l2_solve", "l2_write", "ps_l2"]
 
 
 class PSResult(NamedTuple):
@@ -299,10 +300,7 @@ def l2_solve(images, lights, mask, sample_mask, thresholds, shared, *, weighted,
     """`ps_l2` of one capture without its `cond`: the solve `weighted` chooses, flat.
 
     The batch's half of `ps_l2`: the branch is taken on the host (`l2_needs_weights`), and the
-    results go into the stacked outputs by `l2_write`, a program of its own. Written in the
-    same program, each output's `dynamic-update-slice` fused into the pass that computes it,
-    and XLA-CPU runs such a pass on one thread: at K=12, and for any capture that drops a
-    sample, that was 2-4x slower than a single call (docs/speed.md, "Many captures").
+    results go into the stacked outputs by `l2_write` (or both in one program, `l2_into`).
 
     `images` `(K, H, W)` or `(K, H, W, C)` (float16 is solved in float32); `shared`:
     `host_constants(lights)`. **Returns:** normals `(H*W, 3)`, albedo `(H*W[, C])`, status,
@@ -325,3 +323,20 @@ def l2_write(out, index, results):
     `out` (the five `PSResult` arrays), in place: `out` is donated."""
     return tuple(jax.lax.dynamic_update_index_in_dim(o, r.reshape(o.shape[1:]), index, 0)
                  for o, r in zip(out, results))
+
+
+@functools.partial(jax.jit, static_argnames=("weighted", "dtype"), donate_argnums=0)
+def l2_into(out, index, images, lights, mask, sample_mask, thresholds, shared, *, weighted,
+            dtype):
+    """`l2_write(out, index, l2_solve(...))` traced as one program. XLA-CPU then fuses each
+    output's `dynamic-update-slice` into the pass that computes its values (no copy), and runs
+    such a pass on one thread (`hlo_l2.py`). That beats a solve on all threads plus a copy only
+    while the passes are light: a capture that drops no sample and has at most
+    `INTO_MAX_PLANES` sample planes (docs/speed.md, "Many captures")."""
+    return l2_write(out, index, l2_solve(images, lights, mask, sample_mask, thresholds, shared,
+                                         weighted=weighted, dtype=dtype))
+
+
+# K x C up to which `l2_into` (clean captures) is faster than `l2_solve` + `l2_write` here:
+# `bench_batch.py`, 8 captures of 1 MP, K=5 grey, 156 against 193 ms; K=12 517 against 236.
+INTO_MAX_PLANES = 5
