@@ -24,8 +24,15 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._host import aligned_empty
 from ..lights._directions import validate_lights
-from ._l2 import (INTO_MAX_PLANES, PSResult, host_constants, l2_into, l2_needs_weights,
-                  l2_solve, l2_write)
+from ._l2 import (
+    INTO_MAX_PLANES,
+    PSResult,
+    host_constants,
+    l2_into,
+    l2_needs_weights,
+    l2_solve,
+    l2_write,
+)
 from ._photometric_stereo import PS_METHODS, _sample_thresholds, photometric_stereo
 
 __all__ = ["photometric_stereo_batch"]
