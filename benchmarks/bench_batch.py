@@ -20,6 +20,7 @@ import platform
 import resource
 import subprocess
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -71,6 +72,37 @@ def into_max_planes(planes, fn):
         finally:
             _batch.INTO_MAX_PLANES = saved
     return run
+
+
+def into_threshold(caps5, lights5, caps12, lights12, mask, rounds=10):
+    """Both writes of the batch on each side of `INTO_MAX_PLANES`, interleaved (`rounds` x 3
+    calls each, so that the machine's load hits them alike): median seconds per batch of the
+    one-program write (`l2_into`) and of solve-then-copy, fresh outputs and, at K=5, `out=`."""
+    previous = {}
+
+    def batch(caps, lights, planes, reuse=False):
+        def f():
+            out = previous.pop(planes, None) if reuse else None
+            res = jaxps.photometric_stereo_batch(caps, lights, mask=mask, out=out)
+            if reuse:
+                previous[planes] = res
+            return res
+        return into_max_planes(planes, f)
+
+    fns = {"k5_one_program": batch(caps5, lights5, 5), "k5_copy": batch(caps5, lights5, 0),
+           "k5_out_one_program": batch(caps5, lights5, 5, True),
+           "k5_out_copy": batch(caps5, lights5, 0, True),
+           "k12_one_program": batch(caps12, lights12, 12), "k12_copy": batch(caps12, lights12, 0)}
+    times = {k: [] for k in fns}
+    for f in fns.values():
+        jax.block_until_ready(f())
+    for _ in range(rounds):
+        for k, f in fns.items():
+            for _ in range(3):
+                t = time.perf_counter()
+                jax.block_until_ready(f())
+                times[k].append(time.perf_counter() - t)
+    return {k: float(np.median(v)) for k, v in times.items()}
 
 
 def peak_rss(n, chunk):
@@ -162,6 +194,8 @@ def main():
             ("batch_over_single_throughput_aligned_k12", "batch_l2_aligned_k12",
              "single_calls_l2_aligned_k12")):
         res[key] = res[batch]["captures_per_s"] / res[single]["captures_per_s"]
+    res["into_threshold_median_s"] = into_threshold(caps_aligned, lights, caps12, lights12, mask,
+                                                    rounds=2 if QUICK else 10)
     chunk = 8
     out = subprocess.run([sys.executable, __file__, "--peak-rss", str(N_BIG), str(chunk)]
                          + (["--quick"] if QUICK else []), capture_output=True, text=True,
