@@ -337,6 +337,8 @@ def l2_into(out, index, images, lights, mask, sample_mask, thresholds, shared, *
                                          weighted=weighted, dtype=dtype))
 
 
-# K x C up to which `l2_into` (clean captures) is faster than `l2_solve` + `l2_write` here:
-# `bench_batch.py`, 8 captures of 1 MP, K=5 grey, 156 against 193 ms; K=12 517 against 236.
+# K x C up to which `l2_into` beats `l2_solve` + `l2_write` for clean captures on this
+# project's 2-core machine: `bench_batch.py` (`into_threshold_median_s`, 8 captures of 1 MP,
+# two runs) K=5 192-206 against 203-218 ms (`out=` 95-100 against 107-111), K=12 675 against
+# 280-288. With more cores the threshold can only fall, as only the copy path uses them.
 INTO_MAX_PLANES = 5
