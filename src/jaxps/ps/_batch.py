@@ -2,14 +2,13 @@
 
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
 captures of the same size into `(N, ...)` outputs. On one device the L2 solve runs capture by
-capture and copies each one's results into the stacked outputs in place (`_l2_in_place`);
-other methods map the
-single-capture solver over the capture axis in one jitted call with `jax.lax.map` (in
-sequence, or in `jax.vmap` groups of `vmap_size`), and when several devices are present the
-capture axis is split across them with `jax.sharding` (a 1-D mesh named `"captures"`). The
-results equal N separate `photometric_stereo` calls. `jaxps.reconstruct_many`
-(`cli/_reconstruct.py`) runs capture folders through loading, quality checks and the solve with
-one progress bar and a summary table.
+capture and writes each one's results into the stacked outputs in place (`_l2_in_place`);
+other methods map the single-capture solver over the capture axis in one jitted call with
+`jax.lax.map` (in sequence, or in `jax.vmap` groups of `vmap_size`), and when several devices
+are present the capture axis is split across them with `jax.sharding` (a 1-D mesh named
+`"captures"`). The results equal N separate `photometric_stereo` calls.
+`jaxps.reconstruct_many` (`cli/_reconstruct.py`) runs capture folders through loading, quality
+checks and the solve with one progress bar and a summary table.
 """
 
 from __future__ import annotations
@@ -137,8 +136,8 @@ def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, 
     results into the stacked outputs in place (donated): `out`, or new zeroed arrays. A light
     capture (no sample dropped, at most `INTO_MAX_PLANES` planes) is solved and written in one
     program (`l2_into`, no copy, its passes on one thread); any other is solved on all threads
-    (`l2_solve`), then copied in (`l2_write`). Inside one jitted `lax.map`, as before, each
-    capture was copied out of the stack into the `cond` (docs/speed.md, "Many captures")."""
+    (`l2_solve`), then copied in (`l2_write`). The `lax.map` path, which other methods take,
+    copies each capture out of the stack into the `cond` (docs/speed.md, "Many captures")."""
     n = images.shape[0]
     dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
     solve_dtype = np.float32 if dtype == np.float16 else dtype
