@@ -226,7 +226,8 @@ def main():
               "batch\n(device)", "singles\n(device)",
               "batch vmap\n(device)", "lax.map\n(aligned)", "batch, out=\n(aligned)",
               "batch\n(dropped)", "singles\n(dropped)", "batch\n(K=12)", "singles\n(K=12)",
-              "batch, copy\n(aligned)", "batch K=12\none program"][:len(rows)] + ["semi-cal.\n(one)"]
+              "batch, copy\n(aligned)", "batch K=12\none program"][:len(rows)]
+    labels.append("semi-cal.\n(one)")
     vals = [res[k]["run_s"] / N for k in rows] + [res["semi_calibrated_one_capture"]["run_s"]]
     plt.figure(figsize=(18, 3.2))
     plt.bar(labels, vals)
