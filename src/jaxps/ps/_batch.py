@@ -102,24 +102,27 @@ def _batched_fn(method, options, shared_lights, shared_mask, vmap_size):
     return fn
 
 
+def _l2_output_specs(n, shape, dtype):
+    """`(shape, dtype)` of the five `(N, ...)` outputs of an L2 batch; `shape` is one capture's
+    `(H, W[, C])`."""
+    h, w = shape[:2]
+    return [((n, h, w, 3), dtype), ((n, *shape), dtype), ((n, h, w), np.int32),
+            ((n, h, w), np.int32), ((n, h, w), dtype)]
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
 def _l2_outputs(n, shape, dtype):
-    """Zeroed `(N, ...)` outputs of an L2 batch; `shape` is one capture's `(H, W[, C])`."""
-    h, w = shape[:2]
-    return (jnp.zeros((n, h, w, 3), dtype), jnp.zeros((n, *shape), dtype),
-            jnp.zeros((n, h, w), jnp.int32), jnp.zeros((n, h, w), jnp.int32),
-            jnp.zeros((n, h, w), dtype))
+    """Zeroed `(N, ...)` outputs of an L2 batch (`_l2_output_specs`)."""
+    return tuple(jnp.zeros(s, d) for s, d in _l2_output_specs(n, shape, dtype))
 
 
 def _check_out(out, n, shape, dtype):
     """`out`'s five arrays, checked against the `(N, H, W[, C])` batch they are to hold."""
     if not isinstance(out, PSResult):
         raise ValueError(f"out must be the PSResult of an earlier batch, got {type(out).__name__}")
-    h, w = shape[:2]
-    expected = [((n, h, w, 3), dtype), ((n, *shape), dtype), ((n, h, w), np.int32),
-                ((n, h, w), np.int32), ((n, h, w), dtype)]
     arrays = tuple(out[:5])
-    for name, a, (e_shape, e_dtype) in zip(PSResult._fields, arrays, expected):
+    for name, a, (e_shape, e_dtype) in zip(PSResult._fields, arrays,
+                                           _l2_output_specs(n, shape, dtype)):
         if not isinstance(a, jax.Array) or a.shape != e_shape or a.dtype != e_dtype:
             got = f"{getattr(a, 'shape', None)} {getattr(a, 'dtype', type(a).__name__)}"
             raise ValueError(f"out.{name} must be a JAX array {e_shape} {np.dtype(e_dtype)} to "
