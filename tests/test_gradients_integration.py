@@ -117,7 +117,9 @@ def test_auto_gradient_is_that_of_the_method_it_picks():
             info = jaxps.integrate(n, mask=m, method="auto", return_info=True, **EXACT)
             assert info.method == picked
             g = jax.grad(loss("auto", m, weights, **EXACT))(n)
-            np.testing.assert_array_equal(g, jax.grad(loss(picked, m, weights, **EXACT))(n))
+            # to rounding: `method="dct"` runs as one jit, "auto" step by step
+            np.testing.assert_allclose(g, jax.grad(loss(picked, m, weights, **EXACT))(n),
+                                       rtol=1e-12, atol=1e-14)
         check_grads(loss("auto", None, weights), (full,), order=1, modes=["rev"], eps=EPS,
                     atol=1e-5, rtol=1e-5)
 

@@ -275,14 +275,11 @@ def _to_height(eta, valid, cam, pixel_size, everywhere):
     return (eta * jnp.asarray(pixel_size, dt)).astype(dt)
 
 
-@jax.jit
-def _fc_orthographic(normals, mask, pixel_size):
-    """`integrate(method="fc")` without intrinsics: height and whether any normal was valid.
-
-    The same as `_unit_normals` + `gradients_from_normals` + `_frankot_chellappa`, written on
-    the three normal planes so that XLA fuses the slopes into one pass (a reduction over the
-    length-3 axis or `.at[].set` would each cost a pass over the image).
-    """
+def _orthographic_steps(normals, mask):
+    """Height steps per column and per row of unit normals (0 where not valid), and the valid
+    mask: `_unit_normals` + `_height_steps` without intrinsics, written on the three normal
+    planes so that XLA fuses the slopes into one pass (a reduction over the length-3 axis or
+    `.at[].set` would each cost a pass over the image)."""
     nx, ny, nz = normals[..., 0], normals[..., 1], normals[..., 2]
     # Non-finite normals -> 0 before any arithmetic, so that the branches `where` leaves out
     # carry no NaN into the gradient (elementwise: fused into the same pass).
@@ -292,16 +289,24 @@ def _fc_orthographic(normals, mask, pixel_size):
     ok = mask & jnp.isfinite(sq) & (sq > 1e-12)
     inv = jax.lax.rsqrt(jnp.where(ok, sq, 1))
     slope = 1 / jnp.maximum(nz * inv, _MIN_NZ)
-    dzdc = jnp.where(ok, -nx * inv * slope, 0)
-    dzdr = jnp.where(ok, ny * inv * slope, 0)
+    return jnp.where(ok, -nx * inv * slope, 0), jnp.where(ok, ny * inv * slope, 0), ok
+
+
+@jax.jit
+def _fc_orthographic(normals, mask, pixel_size):
+    """`integrate(method="fc")` without intrinsics: height and whether any normal was valid."""
+    dzdc, dzdr, ok = _orthographic_steps(normals, mask)
     return _frankot_chellappa(dzdc, dzdr, mask, pixel_size), jnp.any(ok)
 
 
 @functools.partial(jax.jit, static_argnames="cam")
 def _dct_fused(normals, mask, pixel_size, cam):
     """`integrate(method="dct")`: the same steps as the general path, in one jit."""
-    n, valid = _unit_normals(normals, mask)
-    gc, gr = _height_steps(n, valid, cam)
+    if cam is None:
+        gc, gr, valid = _orthographic_steps(normals, mask)
+    else:
+        n, valid = _unit_normals(normals, mask)
+        gc, gr = _height_steps(n, valid, cam)
     eta = dct_poisson(gc, gr)
     return _to_height(eta.astype(normals.dtype), valid, cam, pixel_size, True), jnp.any(valid)
 
