@@ -21,6 +21,7 @@ with the previous per-sample relight kernel and the pieces of the new one timed 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import pathlib
@@ -29,6 +30,7 @@ import time
 from typing import NamedTuple
 
 import cv2
+import equinox as eqx
 import jax
 import lineax as lx
 import numpy as np
@@ -308,7 +310,13 @@ def relight_speed(models, normals, albedo, rounds=15):
     import jax.numpy as jnp
     from jax.scipy.ndimage import map_coordinates
 
-    from jaxps.reflectance._brdf import _mlp, _mlp_elementwise, _predict_one, _support_weight
+    from jaxps.reflectance._brdf import (
+        _mlp,
+        _mlp_elementwise,
+        _predict_one,
+        _relight_jit,
+        _support_weight,
+    )
     from jaxps.reflectance._features import (
         _angles_elementwise,
         _atan2_nonneg,
@@ -340,6 +348,8 @@ def relight_speed(models, normals, albedo, rounds=15):
                                                    m.rho_ref, m.bound, m.cell, True, True,
                                                    True))(f, r)
 
+    # the same relight kernel compiled without its 512-bit vector preference
+    plain_width = eqx.filter_jit(_relight_jit.__wrapped__)
     ti, tr, da, _ = jax.jit(_angles_elementwise)(normals, light)
     tr = jnp.broadcast_to(tr, ti.shape)
     rows = [ti, tr, da, ti * 0.5, tr * 0.5]
@@ -358,6 +368,8 @@ def relight_speed(models, normals, albedo, rounds=15):
         "relight_wrap_ggx (the default)": lambda: jaxps.relight(models["wrap_ggx"], normals,
                                                                 albedo, light),
         "render_lambertian": lambda: jaxps.render_lambertian(normals, albedo, light),
+        "relight_mlp_ratio_default_vector_width (before _WIDE_VECTORS)": lambda: plain_width(
+            dataclasses.replace(m, fit=None), normals, albedo, light),
         "relight_mlp_ratio_per_sample (previous kernel)": partial_jit(
             relight_per_sample, normals, albedo, light),
         "piece_features_elementwise (theta_i, theta_r, delta_alpha)": partial_jit(
