@@ -30,7 +30,6 @@ import time
 from typing import NamedTuple
 
 import cv2
-import equinox as eqx
 import jax
 import lineax as lx
 import numpy as np
@@ -314,7 +313,7 @@ def relight_speed(models, normals, albedo, rounds=15):
         _mlp,
         _mlp_elementwise,
         _predict_one,
-        _relight_jit,
+        _relight_kernel,
         _support_weight,
     )
     from jaxps.reflectance._features import (
@@ -349,7 +348,7 @@ def relight_speed(models, normals, albedo, rounds=15):
                                                    True))(f, r)
 
     # the same relight kernel compiled without its 512-bit vector preference
-    plain_width = eqx.filter_jit(_relight_jit.__wrapped__)
+    plain_width = _relight_kernel
     ti, tr, da, _ = jax.jit(_angles_elementwise)(normals, light)
     tr = jnp.broadcast_to(tr, ti.shape)
     rows = [ti, tr, da, ti * 0.5, tr * 0.5]

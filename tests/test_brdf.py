@@ -198,6 +198,10 @@ def test_relight_matches_numpy_reference(scene, fitted):
             ref = relight_numpy(model, s["normals"], s["albedo"], lights)
         # float32 against float64: measured at most 1.1e-6 (albedo 0.4-0.8)
         np.testing.assert_allclose(got[:, s["mask"]], ref[:, s["mask"]], atol=5e-6)
+        # inside a trace relight compiles without its vector-width option (JAX takes compiler
+        # options on top-level jits only): the same kernel, the same values
+        traced = jax.jit(lambda n, m=model: jaxps.relight(m, n, s["albedo"], lights))
+        np.testing.assert_allclose(np.asarray(traced(s["normals"])), got, rtol=0, atol=1e-6)
 
 
 # --------------------------------------------------------------------------- fitting

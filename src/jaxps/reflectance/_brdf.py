@@ -731,15 +731,25 @@ def relight(
     return out
 
 
-# AVX-512 vectors for this elementwise kernel (tanh, the angle polynomials): bit-identical
-# results, 9.5 -> 7.6 ms for a 700x850 MLP relight on this project's CPU (interleaved, same
-# process: benchmarks/bench_brdf.py --part speed). A preference only: CPUs without AVX-512
-# keep their width, and other backends do not read `xla_cpu_*` options.
+def _relight_jit(model, normals, albedo, lights):
+    """`_relight_kernel`, compiled with 512-bit vectors when called outside any trace.
+
+    AVX-512 for this elementwise kernel (tanh, the angle polynomials): bit-identical results,
+    9.9 -> 8.6 ms median for a 700x850 MLP relight on this project's CPU, in the same rounds
+    (`benchmarks/bench_brdf.py --part speed`). A preference only: CPUs without AVX-512 keep
+    their width, and other backends do not read `xla_cpu_*` options. JAX accepts compiler
+    options on top-level jits only, so inside `jit`/`grad` the plain kernel is traced.
+    """
+    traced = any(isinstance(a, jax.core.Tracer)
+                 for a in jax.tree.leaves((model, normals, albedo, lights)))
+    return (_relight_kernel if traced else _relight_wide)(model, normals, albedo, lights)
+
+
 _WIDE_VECTORS = {"xla_cpu_prefer_vector_width": 512}
 
 
-@eqx.filter_jit(compiler_options=_WIDE_VECTORS)
-def _relight_jit(model, normals, albedo, lights):
+@eqx.filter_jit
+def _relight_kernel(model, normals, albedo, lights):
     """`(K, H, W)` images, feature-major: every image-sized quantity is a `(K, P)` array
     (P = H W; per-pixel terms `(1, P)`), so the whole render is elementwise work that XLA fuses
     and vectorises. The same model as `_predict_one` (tests/test_brdf.py checks it against a
@@ -773,6 +783,9 @@ def _relight_jit(model, normals, albedo, lights):
                                  model.cell)
         out = lambert + amp * weight * model.bound * jnp.tanh(g)
     return jnp.broadcast_to(out, (k, h * w)).reshape(k, h, w)
+
+
+_relight_wide = eqx.filter_jit(_relight_kernel.__wrapped__, compiler_options=_WIDE_VECTORS)
 
 
 def _mlp_elementwise(params, rows):
