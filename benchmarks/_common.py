@@ -106,8 +106,21 @@ def environment() -> dict:
         "numpy": np.__version__,
         "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
         "XLA_FLAGS": os.environ.get("XLA_FLAGS"),
+        # the allocator settings that change page faults (docs/speed.md), where set
+        "allocator": {k: v for k, v in os.environ.items()
+                      if k == "GLIBC_TUNABLES" or k.startswith("MALLOC_")},
+        "transparent_hugepage": _thp_mode(),
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
+
+
+def _thp_mode() -> str | None:
+    """The kernel's transparent-huge-page mode (`always`, `madvise` or `never`), if Linux."""
+    try:
+        text = pathlib.Path("/sys/kernel/mm/transparent_hugepage/enabled").read_text()
+    except OSError:
+        return None
+    return text.split("[")[1].split("]")[0] if "[" in text else text.strip()
 
 
 def write_json(name: str, payload: dict) -> pathlib.Path:

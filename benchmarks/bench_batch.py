@@ -43,10 +43,10 @@ TWO_WRITES = hasattr(_batch, "INTO_MAX_PLANES")
 
 
 try:
-    from benchmarks._common import page_faults, timed
+    from benchmarks._common import environment, page_faults, timed
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import page_faults, timed
+    from benchmarks._common import environment, page_faults, timed
 
 
 def captures(n, seed=0, k=K):
@@ -124,7 +124,7 @@ def main():
     res = {"device": str(jax.devices()[0]), "device_count": jax.device_count(),
            "platform": platform.processor() or platform.machine(),
            "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
-           "shape": [N, K, H, W], "quick": QUICK}
+           "env": environment(), "shape": [N, K, H, W], "quick": QUICK}
     # Captures as numpy arrays (as loaded from files) and already on the device: each call
     # then pays, or does not pay, for moving them there.
     # numpy stacks are 16-byte aligned and copied on every call; `load_capture` returns
