@@ -32,7 +32,7 @@ def _even_odd_inverse(v, axis):
 
 def _reorder(x):
     """Makhoul's reordering along both axes. For even sides the four quadrants are stacked in
-    one expression, which XLA-CPU writes in one pass (two nested concatenates cost three)."""
+    one expression, which XLA-CPU fuses into one pass (two nested concatenates were not)."""
     n1, n2 = x.shape
     if n1 % 2 or n2 % 2:
         return _even_odd(_even_odd(x, 0), 1)

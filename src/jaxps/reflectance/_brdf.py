@@ -732,17 +732,18 @@ def relight(
 
 
 def _relight_jit(model, normals, albedo, lights):
-    """`_relight_kernel`, compiled with 512-bit vectors when called outside any trace.
+    """`_relight_kernel`, compiled with 512-bit vectors on the CPU outside any trace.
 
     AVX-512 for this elementwise kernel (tanh, the angle polynomials): bit-identical results,
     9.9 -> 8.6 ms median for a 700x850 MLP relight on this project's CPU, in the same rounds
     (`benchmarks/bench_brdf.py --part speed`). A preference only: CPUs without AVX-512 keep
-    their width, and other backends do not read `xla_cpu_*` options. JAX accepts compiler
-    options on top-level jits only, so inside `jit`/`grad` the plain kernel is traced.
+    their width. JAX accepts compiler options on top-level jits only, so inside `jit`/`grad`
+    the plain kernel is traced; other backends take it too (the option is XLA-CPU's).
     """
     traced = any(isinstance(a, jax.core.Tracer)
                  for a in jax.tree.leaves((model, normals, albedo, lights)))
-    return (_relight_kernel if traced else _relight_wide)(model, normals, albedo, lights)
+    wide = not traced and jax.default_backend() == "cpu"
+    return (_relight_wide if wide else _relight_kernel)(model, normals, albedo, lights)
 
 
 _WIDE_VECTORS = {"xla_cpu_prefer_vector_width": 512}
