@@ -419,3 +419,18 @@ def test_float64_kept(method):
     z32 = jaxps.integrate(n, method=method)
     assert z32.dtype == np.float32
     np.testing.assert_allclose(np.asarray(z64), np.asarray(z32), atol=0.05)
+
+
+@pytest.mark.parametrize("method", jaxps.INTEGRATION_METHODS)
+def test_float16_normals_integrate_in_float32(method, face):
+    # float16 normals (what photometric_stereo returns for float16 frames): XLA's FFTs take
+    # only float32/float64, so integrate solves in float32 and answers in float16.
+    n16 = np.asarray(face.normals, np.float16)
+    mask = np.asarray(face.mask)
+    z16 = jaxps.integrate(n16, mask=mask, method=method)
+    z32 = jaxps.integrate(n16.astype(np.float32), mask=mask, method=method)
+    assert z16.dtype == np.float16
+    np.testing.assert_allclose(np.asarray(z16, np.float32), np.asarray(z32, np.float16),
+                               rtol=0, atol=1e-6)
+    info = jaxps.integrate(n16, mask=mask, method=method, return_info=True)
+    assert info.height.dtype == info.residual.dtype == np.float16

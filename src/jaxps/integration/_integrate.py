@@ -430,6 +430,16 @@ def integrate(
         if not (np.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be positive, got {value}")
     normals, mask = _check_normals(normals, mask)
+    if jnp.finfo(normals.dtype).bits < 32:
+        # XLA's FFTs take float32 or float64 only: solve in float32, answer in the input's dtype
+        out = integrate(normals.astype(jnp.float32), mask=mask, method=method,
+                        pixel_size=pixel_size, intrinsics=intrinsics, k=k, max_steps=max_steps,
+                        tol=tol, cg_rtol=cg_rtol, cg_max_steps=cg_max_steps,
+                        cg_preconditioner=cg_preconditioner, return_info=return_info)
+        if return_info:
+            return out._replace(height=out.height.astype(normals.dtype),
+                                residual=out.residual.astype(normals.dtype))
+        return out.astype(normals.dtype)
     dtype = normals.dtype
     cam = _check_intrinsics(intrinsics)
     if method in ("fc", "dct") and not return_info and (cam is None or method == "dct"):
