@@ -101,3 +101,19 @@ def test_load_capture_check_quality_drops_and_logs(data, caplog):
     assert cap.names == tuple(n for n in names if n != "yaleB02_P00A+020E-10.pgm")
     assert cap.images.shape[0] == 4 and cap.lights.shape == (4, 3)
     assert "yaleB02_P00A+020E-10.pgm: row/interlace" in caplog.text
+
+
+def test_dark_surround_is_not_a_dark_frame():
+    # An object on black filling under 20% of the frame (checked without a mask): more than
+    # `dark_fraction` of every frame is below `dark_level`, but only a frame that is dark for
+    # this capture (its mean under `dark_relative` times the median frame mean) is flagged.
+    _, frames = _frames()
+    k, h, w = frames.shape
+    canvas = np.zeros((k, 3 * h, 3 * w), np.float32)
+    canvas[:, h:2 * h, w:2 * w] = frames
+    report = jaxps.check_frames(canvas)
+    assert all(m > 0.8 for m in (c.measures["dark_fraction"] for c in report.frames))
+    assert not any("dark" in r for c in report.frames for r in c.reasons), report.summary()
+    canvas[3] *= 0.05
+    report = jaxps.check_frames(canvas)
+    assert [c.index for c in report.flagged if any("dark" in r for r in c.reasons)] == [3]

@@ -152,11 +152,6 @@ def load_capture(
             )
         images = _subtract_ambient(images, amb, out=images)  # in place: the stack is ours
 
-    given = names
-    if check_quality:
-        images, saturated, names, light_array, _ = screen_capture(
-            images, saturated, names, light_array)
-
     if isinstance(mask, np.ndarray):
         if mask.shape != images.shape[1:3]:
             raise ValueError(f"mask has shape {mask.shape}, frames have {images.shape[1:3]}")
@@ -165,6 +160,11 @@ def load_capture(
         mask_array = None
     else:
         mask_array = read_mask(mask, images.shape[1:3])
+
+    given = names
+    if check_quality:  # inside the given mask: the frames are judged where they will be used
+        images, saturated, names, light_array, _ = screen_capture(
+            images, saturated, names, light_array, mask=mask_array)
 
     shifts, border = None, 0
     if register:

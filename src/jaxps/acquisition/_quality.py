@@ -17,7 +17,11 @@ Measures per frame (grey mean of the channels, inside `mask` where one is given)
   flagged from `max(min_truncated_rows, truncated_fraction * H)` rows on, since a few black rows
   are an ordinary border. `check_file` finds short PGM/PPM files from their headers.
 - `dark_fraction`, `saturated_fraction`: fractions of pixels below `dark_level` / at or above
-  `saturation`; `nonfinite_fraction`.
+  `saturation`; `nonfinite_fraction`. A frame is flagged dark when more than `dark_fraction` of
+  its pixels are below `dark_level` and it is dark for the capture too: nearly all of it
+  (`dark_all`) is, or its `mean` is below `dark_relative` times the median frame mean. A dark
+  surround that every frame shares (an object on black, a face in a dark booth) is not a dark
+  frame; a flash that did not fire, or the ambient frame, is.
 - `inconsistency`: leave-one-out relative residual of predicting the frame as a linear
   combination of the other (unflagged) frames. Under Lambert's law without shadows every image is
   a linear combination of any three others (Shashua 1992; Belhumeur & Kriegman 1998), so a frame
@@ -62,6 +66,8 @@ class QualityThresholds(NamedTuple):
     saturated_fraction: float = 0.1
     inconsistency_ratio: float = 4.0
     inconsistency_min: float = 0.1
+    dark_all: float = 0.99
+    dark_relative: float = 0.25
 
 
 class FrameCheck(NamedTuple):
@@ -117,6 +123,7 @@ def _frame_measures(frame, mask, dark_level, saturation, row_z):
     nonfinite = jnp.sum(m * (~finite).astype(dtype)) / n
     dark = jnp.sum(m * (x < dark_level).astype(dtype)) / n
     sat = jnp.sum(m * (x >= saturation).astype(dtype)) / n
+    mean = jnp.sum(m * x) / n
 
     # Comb: vertical vs horizontal second differences over pixels whose 3x3 cross is in the mask.
     dy = jnp.abs(x[1:-1, 1:-1] - 0.5 * (x[:-2, 1:-1] + x[2:, 1:-1]))
@@ -147,6 +154,7 @@ def _frame_measures(frame, mask, dark_level, saturation, row_z):
         "bad_rows": bad_rows,
         "truncated_rows": truncated,
         "dark_fraction": dark,
+        "mean": mean,
         "saturated_fraction": sat,
         "nonfinite_fraction": nonfinite,
     }
@@ -230,6 +238,7 @@ def check_frames(
     meas = {key: np.asarray(v) for key, v in meas.items()}
 
     reasons: list[list[str]] = [[] for _ in range(k)]
+    typical = float(np.median(meas["mean"]))  # the capture's usual frame brightness
     for i in range(k):
         mi = {key: float(v[i]) for key, v in meas.items()}
         if mi["nonfinite_fraction"] > 0:
@@ -244,9 +253,11 @@ def check_frames(
         elif mi["bad_rows"] > t.max_bad_rows:
             reasons[i].append(f"corrupt rows: {int(mi['bad_rows'])} rows jump away from their "
                               "neighbours")
-        if mi["dark_fraction"] > t.dark_fraction:
+        if mi["dark_fraction"] > t.dark_fraction and (
+                mi["dark_fraction"] > t.dark_all or mi["mean"] < t.dark_relative * typical):
             reasons[i].append(
-                f"dark: {mi['dark_fraction']:.0%} of pixels below {t.dark_level}")
+                f"dark: {mi['dark_fraction']:.0%} of pixels below {t.dark_level}, mean "
+                f"{mi['mean']:.3g} against a median frame mean of {typical:.3g}")
         if mi["saturated_fraction"] > t.saturated_fraction:
             reasons[i].append(
                 f"saturated: {mi['saturated_fraction']:.0%} of pixels at or above "
