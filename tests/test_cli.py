@@ -117,18 +117,18 @@ def test_reconstruct_yale_five_lights_against_many_light_reference(tmp_path, dat
 
 
 def test_reconstruct_check_quality_drops_combed_frame(tmp_path, data):
-    """yaleB02's +25,0 frame is interlace-combed: `--check-quality` drops it from a single
-    capture, solves with the other four and names it in the summary; without the flag it is
-    kept."""
+    """yaleB02's +25,0 frame is interlace-combed: the frame checks (on by default) drop it from
+    a single capture, solve with the other four and name it in the summary; with
+    `--no-check-quality` it is kept."""
     folder = data / "yaleb" / "yaleB02"
     frames = [str(folder / f"yaleB02_P00{n}.pgm") for n in FIVE]
     ambient = str(folder / "yaleB02_P00_Ambient.pgm")
     args = ["reconstruct", *frames, "--yale-names", "--ambient", ambient]
-    assert main([*args, "--check-quality", "--out", str(tmp_path / "checked")]) == 0
+    assert main([*args, "--out", str(tmp_path / "checked")]) == 0
     summary = json.loads((tmp_path / "checked" / "summary.json").read_text())
     assert summary["dropped_frames"] == ["yaleB02_P00A+025E+00.pgm"]
     assert summary["size"]["frames"] == 4 and len(summary["lights"]) == len(summary["gains"]) == 4
-    assert main([*args, "--out", str(tmp_path / "plain")]) == 0
+    assert main([*args, "--no-check-quality", "--out", str(tmp_path / "plain")]) == 0
     summary = json.loads((tmp_path / "plain" / "summary.json").read_text())
     assert summary["dropped_frames"] == [] and summary["size"]["frames"] == 5
 

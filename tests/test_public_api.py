@@ -61,6 +61,8 @@ ADDED = {
 # Issue 17: `QualityThresholds` gained `dark_all` and `dark_relative` (a dark frame must be dark
 # for its capture too, not only share a dark surround); that entry and `check_frames` (whose
 # default shows the thresholds) rewritten.
+# Issue 17: `load_capture` and `jaxps.cli.reconstruct` check the frames by default
+# (`check_quality=True`, as `reconstruct_many` already did); those two entries rewritten.
 # Issue 18: `photometric_stereo_batch` gained `out` (a stream of batches writes into the previous
 # result's arrays); only that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")

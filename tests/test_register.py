@@ -177,8 +177,9 @@ def test_load_capture_leaves_still_and_far_moved_frames(tmp_path, caplog):
     far[2] = _fourier_shift(images[2], (6.0, 0.0))
     (tmp_path / "far").mkdir()
     with caplog.at_level("WARNING", logger="jaxps"):
+        # check_quality=False: the frame checks would drop the moved frame as inconsistent
         cap = load_capture(_write_frames(tmp_path / "far", far), lights=lights,
-                           linearize="none", intensities="none")
+                           linearize="none", intensities="none", check_quality=False)
     assert not cap.registered and abs(cap.shifts[2, 0] - 6.0) < 0.2
     assert "f2.png" in caplog.text and "left unregistered" in caplog.text
 

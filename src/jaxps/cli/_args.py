@@ -6,6 +6,8 @@ a subcommand's module (named by `module` in the parsed arguments) only to run it
 
 from __future__ import annotations
 
+import argparse
+
 # jaxps.INTENSITY_METHODS, repeated so that building the parser imports no jax (a test checks
 # that the two agree).
 INTENSITY_METHODS = ("none", "mean", "frontal", "semi_calibrated")
@@ -43,9 +45,9 @@ def reconstruct_parser(sub) -> None:
     )
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
                    "several folders are several captures (one progress bar, a summary table)")
-    p.add_argument("--check-quality", action="store_true",
+    p.add_argument("--check-quality", action=argparse.BooleanOptionalAction, default=True,
                    help="drop frames flagged by jaxps.check_frames (corrupt, badly exposed or "
-                   "inconsistent) before solving")
+                   "inconsistent) before solving (default; --no-check-quality keeps every frame)")
     add_light_args(p)
     p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
     p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
@@ -123,9 +125,9 @@ def relight_parser(sub) -> None:
     p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
     p.add_argument("--method", default="wrap_ggx",
                    help="BRDF model (jaxps.BRDF_METHODS; default wrap_ggx, see docs/brdf.md)")
-    p.add_argument("--check-quality", action="store_true",
+    p.add_argument("--check-quality", action=argparse.BooleanOptionalAction, default=True,
                    help="drop frames flagged by jaxps.check_frames (e.g. interlace-combed) "
-                   "before fitting")
+                   "before fitting (default; --no-check-quality keeps every frame)")
     add_register_arg(p)
     p.add_argument("--light", action="append", default=[], metavar="AZ,EL",
                    help="a new light, azimuth,elevation in degrees (Yale B); repeatable; write "

@@ -68,7 +68,7 @@ def reconstruct(
     method: str = "l2",
     integration: str = "fc",
     report: bool = False,
-    check_quality: bool = False,
+    check_quality: bool = True,
     obj: bool = False,
     points: bool = False,
     register: bool = True,
@@ -76,7 +76,7 @@ def reconstruct(
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
     `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
-    `"dropped_frames"` in the summary). `intensities`: see `load_capture` (the summary's
+    `"dropped_frames"` in the summary; on by default, as in `load_capture`). `intensities`: see `load_capture` (the summary's
     `"intensities"` holds the method and the per-frame estimates, `"gains"` their inverses).
     `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
     the measured shifts and whether the frames were moved).
@@ -247,7 +247,8 @@ def reconstruct_many(
                "dropped": "", "ok_pixels": 0, "ok_%": 0.0, "error": ""}
         res = None
         try:
-            cap = load_capture(folder, **load_options)
+            # the check below (not load_capture's) keeps the reasons for the table
+            cap = load_capture(folder, check_quality=False, **load_options)
             if cap.lights is None:
                 raise ValueError("no lights (give lights= or yale_names=True)")
             images, lights, sample_mask = cap.images, cap.lights, ~cap.saturated

@@ -49,7 +49,7 @@ def relight_capture(
     n_samples: int = 100_000,
     max_steps: int = 30,
     seed: int = 0,
-    check_quality: bool = False,
+    check_quality: bool = True,
     register: bool = True,
 ) -> dict:
     """Fit `method` to a capture and write relit PNGs, `relight.gif` and `relight.json` to `out`.
@@ -66,7 +66,8 @@ def relight_capture(
       zenith angle in this many frames.
     - `n_samples`, `max_steps`, `seed`: passed to `fit_brdf` (`key=jax.random.key(seed)`).
     - `check_quality`: drop the frames `jaxps.check_frames` flags (corrupt, badly exposed or
-      inconsistent) before fitting; they are listed under `"dropped_frames"` in the summary.
+      inconsistent) before fitting; they are listed under `"dropped_frames"` in the summary
+      (on by default, as in `load_capture`).
     - `register`: undo motion between frames (see `load_capture`; `"motion"` in the summary).
 
     **Returns:** the summary written to `relight.json` (fit report, files, timings).
