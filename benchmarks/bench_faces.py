@@ -338,8 +338,8 @@ def cand_cli(intensities="frontal"):
     """`jaxps reconstruct FRAMES --yale-names --ambient AMBIENT --out DIR` and no other option
     (issue 17's command line; run in this process), normals read back from `normals.png`.
     `intensities="mean"`: the same with `--equalize` (the seeds' mean equalisation), the
-    figure the default must not be worse than. Neither drops yaleB02's combed frame (that
-    takes `--check-quality`)."""
+    figure the default must not be worse than. Both drop yaleB02's combed frame (the frame
+    checks are on by default since issue 18's latest round)."""
     def run(images, lights, ctx):
         import tempfile
 
