@@ -347,8 +347,6 @@ def relight_speed(models, normals, albedo, rounds=15):
                                                    m.rho_ref, m.bound, m.cell, True, True,
                                                    True))(f, r)
 
-    # the same relight kernel compiled without its 512-bit vector preference
-    plain_width = _relight_kernel
     ti, tr, da, _ = jax.jit(_angles_elementwise)(normals, light)
     tr = jnp.broadcast_to(tr, ti.shape)
     rows = [ti, tr, da, ti * 0.5, tr * 0.5]
@@ -367,7 +365,8 @@ def relight_speed(models, normals, albedo, rounds=15):
         "relight_wrap_ggx (the default)": lambda: jaxps.relight(models["wrap_ggx"], normals,
                                                                 albedo, light),
         "render_lambertian": lambda: jaxps.render_lambertian(normals, albedo, light),
-        "relight_mlp_ratio_default_vector_width (before _WIDE_VECTORS)": lambda: plain_width(
+        # the same kernel compiled without its 512-bit vector preference
+        "relight_mlp_ratio_default_vector_width (before _WIDE_VECTORS)": lambda: _relight_kernel(
             dataclasses.replace(m, fit=None), normals, albedo, light),
         "relight_mlp_ratio_per_sample (previous kernel)": partial_jit(
             relight_per_sample, normals, albedo, light),

@@ -165,11 +165,7 @@ def load_capture(
         mask_array = read_mask(mask, images.shape[1:3])
 
     given = names
-    if check_quality and (images.shape[1] < 5 or images.shape[2] < 3):  # `check_frames`' minimum
-        logging.getLogger("jaxps").warning(
-            "frames of %dx%d pixels are too small for the quality checks; not checked",
-            *images.shape[1:3])
-    elif check_quality:  # inside the given mask: the frames are judged where they will be used
+    if check_quality:  # inside the given mask: the frames are judged where they will be used
         images, saturated, names, light_array, _ = screen_capture(
             images, saturated, names, light_array, mask=mask_array)
 

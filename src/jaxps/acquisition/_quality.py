@@ -52,6 +52,10 @@ __all__ = [
 ]
 
 
+# The smallest frame `check_frames` measures (its row spikes and comb need neighbours).
+_MIN_ROWS, _MIN_COLS = 5, 3
+
+
 class QualityThresholds(NamedTuple):
     """Where a frame measure becomes a flag (defaults chosen on Yale B and psm, see docs)."""
 
@@ -220,8 +224,8 @@ def check_frames(
             f"frames must be floating (K, H, W) or (K, H, W, C), got {frames.shape} {frames.dtype}"
         )
     k, h, w = frames.shape[:3]
-    if h < 5 or w < 3:
-        raise ValueError(f"frames must be at least 5x3 pixels, got {h}x{w}")
+    if h < _MIN_ROWS or w < _MIN_COLS:
+        raise ValueError(f"frames must be at least {_MIN_ROWS}x{_MIN_COLS} pixels, got {h}x{w}")
     names = [f"frame {i}" for i in range(k)] if names is None else [str(n) for n in names]
     if len(names) != k:
         raise ValueError(f"names has {len(names)} entries for K={k} frames")
@@ -361,10 +365,16 @@ def screen_capture(images, saturated, names, lights, mask=None):
     """The acquisition hook (`load_capture(..., check_quality=True)`): check the frames, log
     what was flagged and why (logger `"jaxps"`, level WARNING), and drop flagged frames.
 
-    **Returns:** `(images, saturated, names, lights, report)` with the flagged frames removed.
+    **Returns:** `(images, saturated, names, lights, report)` with the flagged frames removed;
+    frames too small for `check_frames` are logged and returned unchecked (`report` None).
 
     **Raises:** `ValueError` listing every flagged frame when fewer than 3 frames remain.
     """
+    h, w = np.shape(images)[1:3]
+    if h < _MIN_ROWS or w < _MIN_COLS:
+        _LOG.warning("frames of %dx%d pixels are too small for the quality checks; not checked",
+                     h, w)
+        return images, saturated, names, lights, None
     report = check_frames(np.asarray(images), names=list(names), mask=mask)
     if report.flagged:
         _LOG.warning("%s", report.summary())

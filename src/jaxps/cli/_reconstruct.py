@@ -76,8 +76,9 @@ def reconstruct(
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
     `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
-    `"dropped_frames"` in the summary; on by default, as in `load_capture`). `intensities`: see `load_capture` (the summary's
-    `"intensities"` holds the method and the per-frame estimates, `"gains"` their inverses).
+    `"dropped_frames"` in the summary; on by default, as in `load_capture`). `intensities`:
+    see `load_capture` (the summary's `"intensities"` holds the method and the per-frame
+    estimates, `"gains"` their inverses).
     `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
     the measured shifts and whether the frames were moved).
     `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`)."""

@@ -407,8 +407,9 @@ def integrate(
     - `return_info`: return an `IntegrationResult` instead of the height alone.
 
     **Returns:** `(H, W)` height in the dtype of `normals` (normals narrower than float32 are
-    solved in float32), z toward the viewer, mean 0 over the mask; `"fc"` and `"dct"` define it everywhere, `"lsq"` and `"bilateral"` give 0 outside the
-    mask. With `return_info=True`, an `IntegrationResult`.
+    solved in float32), z toward the viewer, mean 0 over the mask; `"fc"` and `"dct"` define
+    it everywhere, `"lsq"` and `"bilateral"` give 0 outside the mask. With
+    `return_info=True`, an `IntegrationResult`.
     """
     if method not in INTEGRATION_METHODS:
         raise ValueError(f"method must be one of {INTEGRATION_METHODS}, got {method!r}")

@@ -65,7 +65,8 @@ def _neumann_solve(rhs):
 
     ($-k$ meaning $N-k$). Dividing each by its eigenvalue $\\lambda$ and inverting the same map
     gives the reordered solution's spectrum
-    $V' = \\tfrac12 \\bar e_1 \\bar e_2 [\\mathrm{Re}\\,S/\\lambda_{++} + \\mathrm{Re}\\,D/\\lambda_{--}
+    $V' = \\tfrac12 \\bar e_1 \\bar e_2 [\\mathrm{Re}\\,S/\\lambda_{++}
+    + \\mathrm{Re}\\,D/\\lambda_{--}
     + i(\\mathrm{Im}\\,S/\\lambda_{-+} + \\mathrm{Im}\\,D/\\lambda_{+-})]$, with
     $\\lambda_{\\pm\\pm} = 4\\sin^2$ or $4\\cos^2(\\pi k_1/2N_1)$ plus the same in $k_2$
     ($\\cos^2$ for $N - k$: $4 - 4\\sin^2$ would cancel in float32 near $k = N$).
@@ -84,7 +85,8 @@ def _neumann_solve(rhs):
     p, q = e2 * f, jnp.conj(e2 * fn)
     s, d = e1 * (p + q), e1 * (p - q)
     lam = s1 + s2  # 0 only at k = (0, 0): the mean, set to 0
-    re = jnp.real(s) * jnp.where(lam > 0, 1 / jnp.where(lam > 0, lam, 1), 0) + jnp.real(d) / (c1 + c2)
+    inv_lam = jnp.where(lam > 0, 1 / jnp.where(lam > 0, lam, 1), 0)
+    re = jnp.real(s) * inv_lam + jnp.real(d) / (c1 + c2)
     im = jnp.imag(s) / (c1 + s2) + jnp.imag(d) / (s1 + c2)
     g = 0.5 * jnp.conj(e1 * e2) * lax.complex(re, im)
     return _reorder_inverse(jnp.fft.irfft2(g, s=(n1, n2)))
