@@ -117,3 +117,25 @@ def test_dark_surround_is_not_a_dark_frame():
     canvas[3] *= 0.05
     report = jaxps.check_frames(canvas)
     assert [c.index for c in report.flagged if any("dark" in r for r in c.reasons)] == [3]
+
+
+def test_blank_border_every_frame_shares_is_not_truncation():
+    # A render on an exactly black canvas: every frame ends in h constant rows (how a short
+    # read is padded too). Only a frame with more of them than the capture's median frame, by
+    # `max(min_truncated_rows, truncated_fraction * H)`, is a short read.
+    _, frames = _frames()
+    k, h, w = frames.shape
+    canvas = np.zeros((k, 3 * h, 3 * w), np.float32)
+    canvas[:, h:2 * h, w:2 * w] = frames
+    report = jaxps.check_frames(canvas)
+    assert [c.measures["truncated_rows"] for c in report.frames] == [h] * k
+    assert report.keep.all(), report.summary()
+    cut = 10  # > max(8, 0.05 * 3h = 9.6)
+    canvas[2, 2 * h - cut:2 * h] = 0.0
+    report = jaxps.check_frames(canvas)
+    assert [c.index for c in report.flagged] == [2], report.summary()
+    assert f"last {h + cut} rows constant" in report.summary()
+    canvas[2, 2 * h - cut, w:2 * w] = frames[2, -cut]  # one row fewer: below the threshold
+    report = jaxps.check_frames(canvas)
+    assert report.frames[2].measures["truncated_rows"] == h + cut - 1
+    assert not any("truncated" in r for c in report.frames for r in c.reasons), report.summary()

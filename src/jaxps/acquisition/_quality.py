@@ -13,9 +13,12 @@ Measures per frame (grey mean of the channels, inside `mask` where one is given)
 - `bad_rows`: rows whose mean differs from both neighbouring rows in the same direction (a spike;
   a scene edge is a one-sided step) by more than `row_z` robust standard deviations (1.4826 times
   the median spike) and by more than 0.05.
-- `truncated_rows`: rows at the bottom that are exactly constant (how a short read is padded);
-  flagged from `max(min_truncated_rows, truncated_fraction * H)` rows on, since a few black rows
-  are an ordinary border. `check_file` finds short PGM/PPM files from their headers.
+- `truncated_rows`: rows at the bottom that are exactly constant (how a short read is padded).
+  A frame is flagged when it has `max(min_truncated_rows, truncated_fraction * H)` such rows
+  more than the median frame of the capture: a few black rows are an ordinary border, and a
+  blank surround that every frame shares (a synthetic render, a background clipped to 0 by the
+  ambient subtraction) is not a short read, which hits one file. `check_file` finds short
+  PGM/PPM files from their headers.
 - `dark_fraction`, `saturated_fraction`: fractions of pixels below `dark_level` / at or above
   `saturation`; `nonfinite_fraction`. A frame is flagged dark when more than `dark_fraction` of
   its pixels are below `dark_level` and it is dark for the capture too: nearly all of it
@@ -243,13 +246,15 @@ def check_frames(
 
     reasons: list[list[str]] = [[] for _ in range(k)]
     typical = float(np.median(meas["mean"]))  # the capture's usual frame brightness
+    blank = float(np.median(meas["truncated_rows"]))  # constant bottom rows every frame has
     for i in range(k):
         mi = {key: float(v[i]) for key, v in meas.items()}
         if mi["nonfinite_fraction"] > 0:
             reasons[i].append(f"non-finite values in {mi['nonfinite_fraction']:.1%} of pixels")
-        if mi["truncated_rows"] >= max(t.min_truncated_rows, t.truncated_fraction * h):
+        if mi["truncated_rows"] - blank >= max(t.min_truncated_rows, t.truncated_fraction * h):
             reasons[i].append(
-                f"truncated: last {int(mi['truncated_rows'])} rows constant (short read)")
+                f"truncated: last {int(mi['truncated_rows'])} rows constant (short read; "
+                f"the median frame has {blank:g})")
         if mi["comb"] > t.comb:
             reasons[i].append(
                 f"row/interlace artefact: vertical/horizontal second difference "
