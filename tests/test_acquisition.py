@@ -188,6 +188,9 @@ def test_capture_errors(tmp_path, data):
         acq.load_capture(sorted(folder.glob("*A+0*.pgm"))[:3], mask=tmp_path / "m.png")
     with pytest.raises(ValueError, match="empty list"):
         acq.load_capture([])
+    # a bad option is named before any file is read (these files do not exist)
+    with pytest.raises(ValueError, match="intensities must be one of"):
+        acq.load_capture([tmp_path / "missing.png"] * 3, intensities="median")
 
 
 def test_srgb_decoding_matches_colour_science():

@@ -191,6 +191,7 @@ def test_works_under_jit_and_vmap_over_captures():
         (dict(sample_mask=np.ones((5, 4, 3), bool)), "sample_mask must have shape"),
         (dict(method="nope"), "method must be one of"),
         (dict(saturation=float("nan")), "saturation must be finite"),
+        (dict(shadow_threshold=float("nan")), "shadow_threshold must be a number or None"),
     ],
 )
 def test_bad_input(kwargs, match):

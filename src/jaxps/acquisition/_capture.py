@@ -119,6 +119,8 @@ def load_capture(
 
     **Raises:** `FileNotFoundError`/`ValueError` naming the offending file or argument.
     """
+    if intensities not in INTENSITY_METHODS:  # before any file is read
+        raise ValueError(f"intensities must be one of {INTENSITY_METHODS}, got {intensities!r}")
     if isinstance(frames, (str, os.PathLike)):
         paths = list_frames(frames)
     else:
@@ -192,8 +194,6 @@ def load_capture(
         keep[border:-border, border:-border] = True
         mask_array = mask_array & (keep if box is None else crop(keep, box))
     method = intensities
-    if method not in INTENSITY_METHODS:
-        raise ValueError(f"intensities must be one of {INTENSITY_METHODS}, got {method!r}")
     if light_array is None and method in ("frontal", "semi_calibrated"):
         if method == "semi_calibrated":
             raise ValueError("intensities='semi_calibrated' needs lights")

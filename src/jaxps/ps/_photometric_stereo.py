@@ -45,6 +45,9 @@ def _sample_thresholds(shadow_threshold: float | None = None, saturation: float 
     for name, value in (("saturation", saturation), ("dark_threshold", dark_threshold)):
         if not np.isfinite(value):
             raise ValueError(f"{name} must be finite, got {value}")
+    # NaN compares false with every sample: every sample would be dropped, every pixel failed
+    if shadow_threshold is not None and np.isnan(shadow_threshold):
+        raise ValueError("shadow_threshold must be a number or None (keep every sample), got nan")
     return dark_threshold, saturation, -np.inf if shadow_threshold is None else shadow_threshold
 
 
