@@ -225,6 +225,18 @@ def test_host_constants_match_the_traced_ones():
     assert not bool(host_constants(np.repeat(lights[:1], 4, axis=0))[4])
 
 
+def test_reflectance_imports_scipy_only_for_the_delaunay_baseline():
+    # scipy.spatial and scipy.interpolate took 0.4-0.8 s of every `jaxps relight` at import
+    import subprocess
+    import sys
+
+    code = ("import sys, jaxps.reflectance, jaxps.cli._relight\n"
+            "print(sorted(m for m in sys.modules if m.startswith('scipy')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True)
+    assert "scipy.spatial" not in out.stdout and "scipy.interpolate" not in out.stdout, out.stdout
+
+
 def test_l2_on_numpy_lights_imports_no_scipy():
     # Lowering a LAPACK call (an SVD of traced lights) imports scipy.linalg: 0.12-0.15 s of
     # every command-line run. The plain L2 solve on numpy lights must not need it.

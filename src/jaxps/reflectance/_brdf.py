@@ -73,8 +73,6 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-import scipy.interpolate
-import scipy.spatial
 from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
@@ -653,6 +651,11 @@ class _DelaunayBRDF:
     """Linear interpolation of $I/\\rho$ on a Delaunay triangulation of (θi, θr, Δα)."""
 
     def __init__(self, points, values):
+        # imported here: scipy.spatial and scipy.interpolate took 0.4-0.8 s of every import of
+        # jaxps.reflectance (every `jaxps relight`), and only this baseline uses them
+        import scipy.interpolate
+        import scipy.spatial
+
         # scipy computes one 3x3 LAPACK call per simplex; with a multi-threaded BLAS each small
         # call pays thread start-up (measured 35x slower on 2 cores), so keep BLAS to 1 thread.
         with threadpool_limits(1, user_api="blas"):
