@@ -15,6 +15,7 @@ Writes benchmarks/results/integration.json and integration.png (MADE against run
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import pathlib
@@ -45,7 +46,12 @@ RUNS = (
     ("bilateral jacobi", "bilateral", False, "jacobi"),
     ("bilateral persp jacobi", "bilateral", True, "jacobi"),
     ("auto persp", "auto", True, "multigrid"),
+    ("lsq persp default emitters", "lsq", True, "multigrid"),
+    ("bilateral persp default emitters", "bilateral", True, "multigrid"),
 )
+# Rows timed with the grid solvers compiled by XLA-CPU's default (fusion) emitters, as before
+# `_grid._CPU_OPTIONS`: the same solve, in the same process.
+DEFAULT_EMITTERS = ("lsq persp default emitters", "bilateral persp default emitters")
 
 
 def data_dir() -> pathlib.Path:
@@ -114,6 +120,21 @@ def bini_reference(normals, mask, K, k=2.0, max_iter=150, tol=1e-4, cg_tol=1e-3)
     depth = np.full((h, w), np.nan)
     depth[mask] = np.exp(-z / fx)
     return depth, it
+
+
+@contextlib.contextmanager
+def default_emitters(on):
+    """`integrate`'s grid solvers without `_grid._CPU_OPTIONS` while `on`."""
+    from jaxps.integration import _integrate
+
+    saved = _integrate.bilateral, _integrate.lsq_midpoint
+    if on:
+        _integrate.bilateral = saved[0].default_emitters
+        _integrate.lsq_midpoint = saved[1].default_emitters
+    try:
+        yield
+    finally:
+        _integrate.bilateral, _integrate.lsq_midpoint = saved
 
 
 def timed(fn, repeat):
@@ -207,7 +228,9 @@ def main():
         for label, method, persp, precond in RUNS:
             kw = {"mask": mask, "method": method, "intrinsics": K if persp else None,
                   "cg_preconditioner": precond, "return_info": True}
-            res, first, runs = timed(lambda kw=kw: jaxps.integrate(normals, **kw), args.repeat)
+            with default_emitters(label in DEFAULT_EMITTERS):
+                res, first, runs = timed(lambda kw=kw: jaxps.integrate(normals, **kw),
+                                         args.repeat)
             stats = height_stats(res.height, depth, mask=mask)
             row[label] = {
                 "made_mm": stats["made"], "rms_mm": stats["rms"],

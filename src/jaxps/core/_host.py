@@ -43,3 +43,16 @@ def to_device(array, dtype=None):
     if isinstance(array, jax.Array):
         return array if dtype is None else array.astype(dtype)
     return jax.device_put(np.asarray(array, dtype))
+
+
+def cpu_top_level(*trees) -> bool:
+    """Whether a jitted call with these arguments runs as its own program on the CPU: no
+    argument is a tracer (JAX accepts `compiler_options` on top-level jits only; inside a
+    user's `jit`/`grad` the call is traced into the caller's program) and the default backend
+    is the CPU (the options below are XLA-CPU's). Callers then pick a jit compiled with
+    XLA-CPU options."""
+    import jax
+
+    if jax.default_backend() != "cpu":
+        return False
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(trees))

@@ -28,6 +28,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
+from ..core._host import cpu_top_level
+
 __all__ = ["GridSolve", "bilateral", "edge_div", "laplacian", "lsq_midpoint", "pcg",
            "solve_laplacian"]
 
@@ -286,6 +288,28 @@ def _edges(valid):
     return eh, ev
 
 
+# XLA-CPU's older loop emitters for the grid solvers, whose CG steps are many small fusions
+# (the V-cycle's coarse levels, dot products): faster on every DiLiGenT object, with the same
+# steps and MADE (`bench_integration.py`'s "default emitters" rows; docs/integration.md,
+# "Measured on DiLiGenT").
+_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+
+
+def _with_cpu_options(jitted, static_argnames):
+    """`jitted`, called through a second jit of the same function compiled with `_CPU_OPTIONS`
+    when the call is a top-level one on the CPU (`cpu_top_level`)."""
+    cpu = jax.jit(jitted.__wrapped__, static_argnames=static_argnames,
+                  compiler_options=_CPU_OPTIONS)
+
+    def call(*args, **kwargs):
+        return (cpu if cpu_top_level(args, kwargs) else jitted)(*args, **kwargs)
+
+    call.__wrapped__, call.__doc__, call.__name__ = jitted.__wrapped__, jitted.__doc__, \
+        jitted.__wrapped__.__name__
+    call.default_emitters = jitted  # for benchmarks/bench_integration.py's comparison rows
+    return call
+
+
 @partial(jax.jit, static_argnames=("max_steps", "preconditioner"))
 def lsq_midpoint(gc, gr, valid, *, rtol, max_steps, preconditioner="multigrid"):
     """Masked least squares: $\\min_z \\sum_{e=(i,j)} (z_j - z_i - (g_i + g_j)/2)^2$ over the
@@ -410,3 +434,7 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
                                preconditioner=preconditioner)
     return GridSolve(z, i, n_cg + n, converged & ok)
 
+
+
+lsq_midpoint = _with_cpu_options(lsq_midpoint, ("max_steps", "preconditioner"))
+bilateral = _with_cpu_options(bilateral, ("max_steps", "cg_max_steps", "preconditioner"))

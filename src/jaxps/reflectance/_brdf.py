@@ -77,6 +77,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
+from ..core._host import cpu_top_level
 from ..core._random import as_key
 from . import _parametric
 from ._auto import fit_auto, lolo_folds
@@ -743,9 +744,7 @@ def _relight_jit(model, normals, albedo, lights):
     their width. JAX accepts compiler options on top-level jits only, so inside `jit`/`grad`
     the plain kernel is traced; other backends take it too (the option is XLA-CPU's).
     """
-    traced = any(isinstance(a, jax.core.Tracer)
-                 for a in jax.tree.leaves((model, normals, albedo, lights)))
-    wide = not traced and jax.default_backend() == "cpu"
+    wide = cpu_top_level(model, normals, albedo, lights)
     return (_relight_wide if wide else _relight_kernel)(model, normals, albedo, lights)
 
 
