@@ -103,14 +103,20 @@ def test_load_capture_check_quality_drops_and_logs(data, caplog):
     assert "yaleB02_P00A+020E-10.pgm: row/interlace" in caplog.text
 
 
-def test_dark_surround_is_not_a_dark_frame():
-    # An object on black filling under 20% of the frame (checked without a mask): more than
-    # `dark_fraction` of every frame is below `dark_level`, but only a frame that is dark for
-    # this capture (its mean under `dark_relative` times the median frame mean) is flagged.
+def _on_black_canvas():
+    """The test frames `(K, h, w)` in the middle of an exactly black `(K, 3h, 3w)` canvas."""
     _, frames = _frames()
     k, h, w = frames.shape
     canvas = np.zeros((k, 3 * h, 3 * w), np.float32)
     canvas[:, h:2 * h, w:2 * w] = frames
+    return canvas, frames
+
+
+def test_dark_surround_is_not_a_dark_frame():
+    # An object on black filling under 20% of the frame (checked without a mask): more than
+    # `dark_fraction` of every frame is below `dark_level`, but only a frame that is dark for
+    # this capture (its mean under `dark_relative` times the median frame mean) is flagged.
+    canvas, _ = _on_black_canvas()
     report = jaxps.check_frames(canvas)
     assert all(m > 0.8 for m in (c.measures["dark_fraction"] for c in report.frames))
     assert not any("dark" in r for c in report.frames for r in c.reasons), report.summary()
@@ -123,10 +129,8 @@ def test_blank_border_every_frame_shares_is_not_truncation():
     # A render on an exactly black canvas: every frame ends in h constant rows (how a short
     # read is padded too). Only a frame with more of them than the capture's median frame, by
     # `max(min_truncated_rows, truncated_fraction * H)`, is a short read.
-    _, frames = _frames()
+    canvas, frames = _on_black_canvas()
     k, h, w = frames.shape
-    canvas = np.zeros((k, 3 * h, 3 * w), np.float32)
-    canvas[:, h:2 * h, w:2 * w] = frames
     report = jaxps.check_frames(canvas)
     assert [c.measures["truncated_rows"] for c in report.frames] == [h] * k
     assert report.keep.all(), report.summary()
