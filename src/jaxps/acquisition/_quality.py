@@ -153,8 +153,9 @@ def _measures(grey, mask, dark_level, saturation):
 
 def _row_measures(rows, const_rows, row_n, row_z):
     """`(bad_rows, truncated_rows)` per frame from `(K, H)` masked row means, constant-row
-    flags and the `(H,)` mask count per row, in numpy: a few thousand numbers, where the traced
-    median, cumulative product and shifts cost a fresh process 0.1-0.2 s to trace and lower.
+    flags and the `(H,)` mask count per row, in numpy: a few thousand numbers, whose traced
+    median, cumulative product and shifts took a fresh process longer to trace and lower than
+    to run (the "load frames" stage of `benchmarks/bench_cli.py`, docs/speed.md).
 
     Row spikes: a row that differs from BOTH neighbouring rows in the same direction (an edge
     in the scene is a step, one-sided; a corrupt row is a spike, two-sided), by more than

@@ -435,6 +435,5 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
     return GridSolve(z, i, n_cg + n, converged & ok)
 
 
-
 lsq_midpoint = _with_cpu_options(lsq_midpoint, ("max_steps", "preconditioner"))
 bilateral = _with_cpu_options(bilateral, ("max_steps", "cg_max_steps", "preconditioner"))
