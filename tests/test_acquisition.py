@@ -97,6 +97,28 @@ def test_ambient_subtraction_clips_and_saturation_from_raw(tmp_path):
     assert cap.intensity_method == "none" and np.all(cap.gains == 1)
 
 
+def test_folder_ambient_auto_and_unused_ambient_named(tmp_path, caplog):
+    # A scanner writes one folder per capture, its ambient frame inside: ambient="auto" takes
+    # that file, and a folder's ambient frame left unused is named on the "jaxps" logger.
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"f{k}.pgm"), rng.integers(60, 250, (6, 5), dtype=np.uint8))
+    cv2.imwrite(str(tmp_path / "Ambient.pgm"), rng.integers(1, 50, (6, 5), dtype=np.uint8))
+    kw = {"lights": np.eye(3), "intensities": "none", "check_quality": False, "register": False}
+    given = acq.load_capture(tmp_path, ambient=tmp_path / "Ambient.pgm", **kw)
+    auto = acq.load_capture(tmp_path, ambient="auto", **kw)
+    np.testing.assert_array_equal(auto.images, given.images)
+    with caplog.at_level("WARNING", logger="jaxps"):
+        plain = acq.load_capture(tmp_path, **kw)
+    assert "Ambient.pgm" in caplog.text and "not subtracted" in caplog.text
+    assert np.all(plain.images > given.images)
+    with pytest.raises(ValueError, match="a folder of frames"):
+        acq.load_capture(sorted(tmp_path.glob("f*.pgm")), ambient="auto", **kw)
+    cv2.imwrite(str(tmp_path / "ambient_2.pgm"), np.zeros((6, 5), np.uint8))
+    with pytest.raises(ValueError, match="expected one frame .*Ambient.pgm.*ambient_2.pgm"):
+        acq.load_capture(tmp_path, ambient="auto", **kw)
+
+
 def test_load_capture_divides_out_frame_intensities(tmp_path):
     """Frames of a sphere cap (mean normal on the view axis, no shadows) under flashes of known
     strength: the default ("frontal") recovers them, "none" keeps the frames as read, and the

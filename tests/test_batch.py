@@ -242,3 +242,39 @@ print("OK")
     proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
                           text=True, timeout=300)
     assert proc.returncode == 0 and "OK" in proc.stdout, proc.stdout + proc.stderr[-2000:]
+
+
+def test_cli_many_folders_each_subtracts_its_own_ambient(tmp_path):
+    # One folder per capture, each with its own ambient frame: `--ambient auto` subtracts each
+    # folder's own, so captures under 0.05 and 0.30 of ambient light give the same normals.
+    import cv2
+
+    from jaxps.cli import main
+    from jaxps.report._writers import read_normal_map
+
+    scene = face_scene(48)
+    light_file = tmp_path / "lights.txt"
+    light_file.write_text("5\n" + "\n".join(" ".join(map(str, r)) for r in
+                                              np.asarray(scene.lights)))
+    folders = []
+    for name, level in (("low", 0.05), ("high", 0.30)):
+        folder = tmp_path / name
+        folder.mkdir()
+        folders.append(str(folder))
+        for i, f in enumerate(np.asarray(scene.images)):
+            cv2.imwrite(str(folder / f"f{i}.png"),
+                        np.round(np.clip(f + level, 0, 1) * 65535).astype(np.uint16))
+        cv2.imwrite(str(folder / "ambient.png"),
+                    np.full(scene.mask.shape, round(level * 65535), np.uint16))
+    argv = ["reconstruct", *folders, "--lights", str(light_file), "--intensities", "none",
+            "--no-register", "--out"]
+    assert main([*argv, str(tmp_path / "auto"), "--ambient", "auto"]) == 0
+    assert main([*argv, str(tmp_path / "as_read")]) == 0
+    mask = np.asarray(scene.mask)
+
+    def error(run, name):
+        normals = read_normal_map(tmp_path / run / name / "normals.png")
+        return float(np.median(np.asarray(jaxps.angular_error(normals, scene.normals))[mask]))
+
+    assert error("auto", "low") < 0.5 and error("auto", "high") < 0.5
+    assert error("as_read", "high") > 5  # the ambient light left in bends the normals

@@ -19,7 +19,7 @@ from ..core._host import aligned, aligned_empty
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ._face import bucket_box, crop, detect_face
-from ._files import PathLike, list_frames, load_stack, read_image, read_mask
+from ._files import FRAME_EXTENSIONS, PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
 from ._register import _shift, estimate_shifts
 from ._stack import _subtract_ambient, mask_from_intensity
@@ -89,7 +89,11 @@ def load_capture(
     - `frames`: a folder (see `list_frames`) or a list of frame files.
     - `lights`: a `lights.txt` path or a `(K, 3)` array; or `yale_names=True` to parse
       Yale-B-style names (`..._P00A+035E+15.pgm`).
-    - `ambient`: the ambient-only control frame, subtracted from every frame and clipped at 0.
+    - `ambient`: the ambient-only control frame, subtracted from every frame and clipped at 0;
+      `"auto"` (with a folder of frames): the one file in the folder whose name contains
+      "ambient", so that each capture of a batch (`jaxps reconstruct DIR1 DIR2 ...
+      --ambient auto`) subtracts its own. A folder's ambient frame is never used unasked:
+      without `ambient`, a warning names it.
     - `mask`: a mask image path, a `(H, W)` bool array, `"auto"` (Otsu on the mean image), or
       None (every pixel).
     - `intensities`: how each frame's flash strength is estimated and divided out, one of
@@ -121,8 +125,13 @@ def load_capture(
     """
     if intensities not in INTENSITY_METHODS:  # before any file is read
         raise ValueError(f"intensities must be one of {INTENSITY_METHODS}, got {intensities!r}")
-    if isinstance(frames, (str, os.PathLike)):
+    folder = isinstance(frames, (str, os.PathLike))
+    if isinstance(ambient, str) and ambient == "auto" and not folder:
+        raise ValueError("ambient='auto' takes the ambient frame from a folder of frames; "
+                         "with a list of files, give the ambient file")
+    if folder:
         paths = list_frames(frames)
+        ambient = _folder_ambient(frames, ambient)
     else:
         paths = [os.fspath(p) for p in frames]
         if not paths:
@@ -218,6 +227,23 @@ def load_capture(
     return Capture(aligned(images, np.float32), light_array, mask_array,
                    saturated, names, box, (1 / e).astype(np.float32),
                    tuple(n for n in given if n not in names), e, method, shifts, border > 0)
+
+
+def _folder_ambient(folder, ambient):
+    """`ambient` for a folder capture: the folder's one `*ambient*` frame for `"auto"`; as
+    given otherwise, with a warning when the folder holds an ambient frame that is not used."""
+    found = sorted(n for n in os.listdir(folder)
+                   if "ambient" in n.lower() and n.lower().endswith(FRAME_EXTENSIONS))
+    if not (isinstance(ambient, str) and ambient == "auto"):
+        if ambient is None and found:
+            logging.getLogger("jaxps").warning(
+                "load_capture: %s holds an ambient frame (%s) that is not subtracted; pass "
+                "ambient='auto' (--ambient auto) to use it", os.fspath(folder), ", ".join(found))
+        return ambient
+    if len(found) != 1:
+        raise ValueError(f"ambient='auto': expected one frame whose name contains 'ambient' in "
+                         f"{os.fspath(folder)}, found {found or 'none'}")
+    return os.path.join(folder, found[0])
 
 
 def _register(images, saturated, lights, mask, names):

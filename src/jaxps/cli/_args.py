@@ -29,7 +29,8 @@ def add_light_args(p) -> None:
     g.add_argument("--lights", help="lights.txt: optional count line, then 'x y z' per frame")
     g.add_argument("--yale-names", action="store_true",
                    help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
-    p.add_argument("--ambient", help="ambient-only control frame to subtract")
+    p.add_argument("--ambient", help="ambient-only control frame to subtract; 'auto': the "
+                   "file named *ambient* in each folder of frames (one per capture)")
 
 
 def reconstruct_parser(sub) -> None:
