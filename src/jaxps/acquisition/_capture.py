@@ -125,14 +125,13 @@ def load_capture(
     """
     if intensities not in INTENSITY_METHODS:  # before any file is read
         raise ValueError(f"intensities must be one of {INTENSITY_METHODS}, got {intensities!r}")
-    folder = isinstance(frames, (str, os.PathLike))
-    if isinstance(ambient, str) and ambient == "auto" and not folder:
-        raise ValueError("ambient='auto' takes the ambient frame from a folder of frames; "
-                         "with a list of files, give the ambient file")
-    if folder:
+    if isinstance(frames, (str, os.PathLike)):
         paths = list_frames(frames)
         ambient = _folder_ambient(frames, ambient)
     else:
+        if _is_auto(ambient):
+            raise ValueError("ambient='auto' takes the ambient frame from a folder of frames; "
+                             "with a list of files, give the ambient file")
         paths = [os.fspath(p) for p in frames]
         if not paths:
             raise ValueError("frames: empty list of files")
@@ -234,16 +233,20 @@ def _folder_ambient(folder, ambient):
     given otherwise, with a warning when the folder holds an ambient frame that is not used."""
     found = sorted(n for n in os.listdir(folder)
                    if "ambient" in n.lower() and n.lower().endswith(FRAME_EXTENSIONS))
-    if not (isinstance(ambient, str) and ambient == "auto"):
-        if ambient is None and found:
-            logging.getLogger("jaxps").warning(
-                "load_capture: %s holds an ambient frame (%s) that is not subtracted; pass "
-                "ambient='auto' (--ambient auto) to use it", os.fspath(folder), ", ".join(found))
-        return ambient
-    if len(found) != 1:
-        raise ValueError(f"ambient='auto': expected one frame whose name contains 'ambient' in "
-                         f"{os.fspath(folder)}, found {found or 'none'}")
-    return os.path.join(folder, found[0])
+    if _is_auto(ambient):
+        if len(found) != 1:
+            raise ValueError(f"ambient='auto': expected one frame whose name contains 'ambient' "
+                             f"in {os.fspath(folder)}, found {found or 'none'}")
+        return os.path.join(folder, found[0])
+    if ambient is None and found:
+        logging.getLogger("jaxps").warning(
+            "load_capture: %s holds an ambient frame (%s) that is not subtracted; pass "
+            "ambient='auto' (--ambient auto) to use it", os.fspath(folder), ", ".join(found))
+    return ambient
+
+
+def _is_auto(ambient):
+    return isinstance(ambient, str) and ambient == "auto"
 
 
 def _register(images, saturated, lights, mask, names):
