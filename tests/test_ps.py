@@ -164,6 +164,34 @@ def test_per_pixel_lights_match_shared():
     np.testing.assert_array_equal(per_pixel.status, shared.status)
 
 
+@pytest.mark.parametrize("case", ["clean", "dropped", "colour", "sample_mask", "uint8_mask"])
+def test_host_chosen_branch_equals_the_traced_cond(case):
+    # A top-level call on the CPU picks L2's solve on the host and compiles only that one; a
+    # call inside a jit takes the `cond` in the program. Both must give the same result.
+    s = face_scene(40)
+    images, options = np.array(s.images), {"mask": np.asarray(s.mask)}
+    if case == "dropped":
+        images[1, :12] = 1.0  # saturated
+        images[3][np.random.default_rng(2).uniform(size=images[3].shape) < 0.05] = np.nan
+        options["shadow_threshold"] = 0.02
+    elif case == "colour":
+        images = images[..., None] * np.array([1.0, 0.7, 0.4], np.float32)
+    elif case == "sample_mask":
+        options["sample_mask"] = np.ones(images.shape, bool)
+        options["sample_mask"][2, 10:20] = False
+    elif case == "uint8_mask":
+        options["mask"] = np.asarray(s.mask).astype(np.uint8) * 255
+    host = jaxps.photometric_stereo(images, s.lights, **options)
+    traced = jax.jit(lambda x: jaxps.photometric_stereo(x, s.lights, **options))(images)
+    np.testing.assert_array_equal(host.status, traced.status)
+    np.testing.assert_array_equal(host.n_used, traced.n_used)
+    for a, b in zip(host[:5], traced[:5]):
+        assert a.shape == b.shape and a.dtype == b.dtype
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    dropping = case in ("dropped", "sample_mask")
+    assert (np.asarray(host.n_used)[np.asarray(s.mask)] < len(images)).any() == dropping
+
+
 def test_works_under_jit_and_vmap_over_captures():
     s = face_scene(24)
     batch = jnp.stack([s.images, 0.5 * s.images])

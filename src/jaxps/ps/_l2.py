@@ -199,37 +199,44 @@ def host_constants(lights: np.ndarray) -> tuple[np.ndarray, ...]:
     return lights, np.linalg.pinv(lights), u[:, 3:].T, lights.T @ lights, full_rank
 
 
-def _planes(images, sample_mask, mask):
-    """One `(H*W,)` plane per sample and channel of `(K, H, W, C)` or grey `(K, H, W)` images,
-    the usable planes (or K `True`s) and the mask."""
+def _planes(images, sample_mask, mask, flat):
+    """One plane per sample and channel of `(K, H, W, C)` or grey `(K, H, W)` images, the
+    usable planes (or K `True`s) and the mask: `(H*W,)` planes if `flat`, else `(H, W)`."""
     k = images.shape[0]
+    plane = (lambda a: a.reshape(-1)) if flat else (lambda a: a)
     if images.ndim == 3:  # sliced as it is: a channel axis added first changed XLA's fusions
-        x = [[images[i].reshape(-1)] for i in range(k)]
+        x = [[plane(images[i])] for i in range(k)]
     else:
-        x = [[images[i, :, :, j].reshape(-1) for j in range(images.shape[3])] for i in range(k)]
-    usable = [True] * k if sample_mask is None else [sample_mask[i].reshape(-1) for i in range(k)]
-    return x, usable, mask.reshape(-1)
+        x = [[plane(images[i, :, :, j]) for j in range(images.shape[3])] for i in range(k)]
+    usable = [True] * k if sample_mask is None else [plane(sample_mask[i]) for i in range(k)]
+    return x, usable, plane(mask)
 
 
-def _solve_all_used(images, mask, sample_mask, thresholds, shared):
+def _lift(kernel, in_axes, flat):
+    """`kernel` over every pixel of `(H*W,)` planes if `flat`, else of `(H, W)` planes."""
+    return jax.vmap(kernel, in_axes) if flat else jax.vmap(jax.vmap(kernel, in_axes), in_axes)
+
+
+def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True):
     """`_pixel_all_used` over every pixel: the outputs, then the "re-solve needed" flags."""
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
-    return jax.vmap(_pixel_all_used, in_axes=(0, axis, 0, None, None))(
-        *_planes(images, sample_mask, mask), shared, thresholds)
+    return _lift(_pixel_all_used, (0, axis, 0, None, None), flat)(
+        *_planes(images, sample_mask, mask, flat), shared, thresholds)
 
 
-def _solve_weighted(images, lights, mask, sample_mask, thresholds):
+def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True):
     """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights."""
     k = images.shape[0]
     per_pixel = lights.ndim == 4
     if per_pixel:
         lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
-        lt = [[lights[i, ..., p].reshape(-1) for p in range(3)] for i in range(k)]
+        lt = [[(lights[i, ..., p].reshape(-1) if flat else lights[i, ..., p]) for p in range(3)]
+              for i in range(k)]
     else:
         lt = [[lights[i, p] for p in range(3)] for i in range(k)]
     axis = None if sample_mask is None else 0
-    return jax.vmap(_pixel_weighted, in_axes=(0, axis, 0, 0 if per_pixel else None, None))(
-        *_planes(images, sample_mask, mask), lt, thresholds)
+    return _lift(_pixel_weighted, (0, axis, 0, 0 if per_pixel else None, None), flat)(
+        *_planes(images, sample_mask, mask, flat), lt, thresholds)
 
 
 def _stacked(out):
@@ -244,12 +251,16 @@ def _cast_shared(shared, dtype):
     return tuple(a.astype(dtype) if a.dtype != bool else a for a in shared)
 
 
-@jax.jit
-def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
-    """Jitted core. `images` `(K, H, W, C)`; `lights` `(K, 3)` or `(K, H, W, 3)`;
+@functools.partial(jax.jit, static_argnames=("branch",))
+def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=None):
+    """Jitted core. `images` `(K, H, W, C)`, or grey `(K, H, W)` (albedo then `(H, W)`);
+    `lights` `(K, 3)` or `(K, H, W, 3)`;
     `sample_mask` `(K, H, W)` bool or None (every sample allowed: no mask planes are read, or
     copied into the `cond` below); `shared`: `host_constants(lights)` or None (computed here,
-    differentiably).
+    differentiably); `branch`: None (decided in the program, by the `cond` below), or the
+    solve already chosen on the host with `l2_needs_weights`: `"all_used"` or `"weighted"`
+    (`photometric_stereo` does so for a top-level call on the CPU, so that only the branch it
+    runs is traced and compiled).
 
     The kernels take one plane per sample and channel (`(H*W,)` each) rather than slicing a
     `(K, H*W, C)` block: under `vmap`, indexing a batched block moves the pixel axis first (a
@@ -259,13 +270,21 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
     captures `lax.cond` runs both; `photometric_stereo_batch` makes the same choice on the
     host, capture by capture, with `l2_needs_weights` and `l2_solve`).
     """
-    h, w, c = images.shape[1:]
+    h, w = images.shape[1:3]
     if shared is None and lights.ndim == 2:
         shared = _shared_constants(lights)
     elif shared is not None:
         shared = _cast_shared(shared, images.dtype)
 
-    if lights.ndim == 2:
+    if branch not in (None, "all_used", "weighted"):
+        raise ValueError(f"branch must be None, 'all_used' or 'weighted', got {branch!r}")
+    if lights.ndim == 2 and branch == "all_used":
+        out = _stacked(_solve_all_used(images, mask, sample_mask, thresholds, shared,
+                                       flat=False)[:-1])
+    elif lights.ndim == 2 and branch == "weighted":
+        out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds,
+                                       flat=False))
+    elif lights.ndim == 2 and branch is None:
         # The flag pass costs one read of the images; it lets the branches take only the inputs
         # as operands (planes or results built outside a `cond` would be copied into it). Where
         # no sample is dropped the two solves agree to rounding (the tests hold both to numpy
@@ -280,17 +299,21 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None):
     else:
         out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds))
     normal, albedo, status, n_used, residual = out
-    return PSResult(normal.reshape(h, w, 3), albedo.reshape(h, w, c), status.reshape(h, w),
-                    n_used.reshape(h, w), residual.reshape(h, w))
+    return PSResult(normal.reshape(h, w, 3), albedo.reshape(h, w, *images.shape[3:]),
+                    status.reshape(h, w), n_used.reshape(h, w), residual.reshape(h, w))
 
 
 @jax.jit
 def l2_needs_weights(images, mask, sample_mask, thresholds, shared):
     """Whether any pixel in `mask` must be solved by `_pixel_weighted` (a sample non-finite,
     saturated, shadowed or not in `sample_mask`): `ps_l2`'s branch, taken on the host.
-    Arguments as in `l2_solve`."""
+    Arguments as in `l2_solve`; `mask` None is every pixel, and `thresholds` are cast to the
+    images' dtype here."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
+    if mask is None:
+        mask = jnp.ones(images.shape[1:3], bool)
+    thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
     shared = _cast_shared(shared, images.dtype)
     return jnp.any(_solve_all_used(images, mask, sample_mask, thresholds, shared)[-1])
 
