@@ -56,3 +56,10 @@ def cpu_top_level(*trees) -> bool:
     if jax.default_backend() != "cpu":
         return False
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(trees))
+
+
+# XLA-CPU's older loop emitters, for the programs measured faster with them: the grid
+# integrators (many small CG fusions) and L2's flag pass and every-sample-used solve (faster
+# to compile and to run; the weighted L2 solve is slower with them and keeps the default).
+# `benchmarks/bench_integration.py` and `bench_core.py`; docs/speed.md.
+OLDER_EMITTERS = {"xla_cpu_use_fusion_emitters": False}

@@ -28,7 +28,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ..core._host import cpu_top_level
+from ..core._host import OLDER_EMITTERS, cpu_top_level
 
 __all__ = ["GridSolve", "bilateral", "edge_div", "laplacian", "lsq_midpoint", "pcg",
            "solve_laplacian"]
@@ -292,7 +292,7 @@ def _edges(valid):
 # (the V-cycle's coarse levels, dot products): faster on every DiLiGenT object, with the same
 # steps and MADE (`bench_integration.py`'s "default emitters" rows; docs/integration.md,
 # "Measured on DiLiGenT").
-_CPU_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+_CPU_OPTIONS = OLDER_EMITTERS
 
 
 def _with_cpu_options(jitted, static_argnames):

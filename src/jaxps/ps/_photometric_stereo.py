@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ..core._host import cpu_top_level, to_device
+from ..core._host import OLDER_EMITTERS, cpu_top_level, to_device
 from ..lights._directions import validate_lights
 from ._l2 import PSResult, host_constants, l2_needs_weights
 
@@ -152,8 +152,8 @@ def photometric_stereo(
             images = to_device(images)
             mask, sample_mask = (None if m is None else to_device(m, bool)
                                  for m in (mask, sample_mask))
-            weighted = bool(l2_needs_weights(images, mask, sample_mask, thresholds,
-                                             dynamic["shared"]))
+            weighted = bool(_needs_weights(images, mask, sample_mask, thresholds,
+                                           dynamic["shared"]))
             options = {**options, "branch": "weighted" if weighted else "all_used"}
     static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
     try:
@@ -163,6 +163,8 @@ def photometric_stereo(
         run = _run.__wrapped__
     if run is not _run:
         images = to_device(images)  # the eager solvers take device arrays
+    elif options.get("branch") == "all_used":
+        run = _run_older_emitters
     return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
                static=static)
 
@@ -202,3 +204,10 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
         res.residual.astype(out_dtype),
         res.info,
     )
+
+
+# L2's flag pass and every-sample-used solve, as top-level CPU programs, with XLA-CPU's older
+# emitters: about half the compile time, and as fast or faster to run (`OLDER_EMITTERS`).
+_needs_weights = jax.jit(l2_needs_weights.__wrapped__, compiler_options=OLDER_EMITTERS)
+_run_older_emitters = jax.jit(_run.__wrapped__, static_argnames=("method", "static"),
+                              compiler_options=OLDER_EMITTERS)
