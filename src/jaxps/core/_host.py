@@ -59,7 +59,6 @@ def cpu_top_level(*trees) -> bool:
 
 
 # XLA-CPU's older loop emitters, for the programs measured faster with them: the grid
-# integrators (many small CG fusions) and L2's flag pass and every-sample-used solve (faster
-# to compile and to run; the weighted L2 solve is slower with them and keeps the default).
-# `benchmarks/bench_integration.py` and `bench_core.py`; docs/speed.md.
+# integrators (many small CG fusions; `benchmarks/bench_integration.py`) and L2's
+# every-sample-used solve (`benchmarks/bench_l2_programs.py`); docs/speed.md.
 OLDER_EMITTERS = {"xla_cpu_use_fusion_emitters": False}

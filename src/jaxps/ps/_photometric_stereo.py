@@ -152,8 +152,8 @@ def photometric_stereo(
             images = to_device(images)
             mask, sample_mask = (None if m is None else to_device(m, bool)
                                  for m in (mask, sample_mask))
-            weighted = bool(_needs_weights(images, mask, sample_mask, thresholds,
-                                           dynamic["shared"]))
+            weighted = bool(l2_needs_weights(images, mask, sample_mask, thresholds,
+                                             dynamic["shared"]))
             options = {**options, "branch": "weighted" if weighted else "all_used"}
     static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
     try:
@@ -206,8 +206,8 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
     )
 
 
-# L2's flag pass and every-sample-used solve, as top-level CPU programs, with XLA-CPU's older
-# emitters: about half the compile time, and as fast or faster to run (`OLDER_EMITTERS`).
-_needs_weights = jax.jit(l2_needs_weights.__wrapped__, compiler_options=OLDER_EMITTERS)
+# L2's every-sample-used solve as a top-level CPU program, with XLA-CPU's older emitters:
+# 7.9-8.3 against 10.3-10.4 ms at 1 MP, K=5 (`benchmarks/bench_l2_programs.py`). The flag
+# pass and the weighted solve were no faster with them (the weighted one slower).
 _run_older_emitters = jax.jit(_run.__wrapped__, static_argnames=("method", "static"),
                               compiler_options=OLDER_EMITTERS)
