@@ -55,6 +55,61 @@ def _flat_then_reshaped(weighted):
     return solve
 
 
+def _rows(k, surface, repeats):
+    """The timed programs for K lights: a list of JSON rows."""
+    rows = []
+    lights = jaxps.synthetic.scanner_lights(20.0, k=k) if k < 12 else ring_lights(k)
+    lights = np.asarray(lights, np.float64)
+    lights /= np.linalg.norm(lights, axis=1, keepdims=True)
+    scene = jaxps.synthetic.render_scene(surface, lights)
+    images = jax.device_put(np.asarray(scene.images))
+    mask = jax.device_put(np.asarray(scene.mask))
+    shared = _l2.host_constants(lights)
+    inside = np.asarray(scene.images)[:, np.asarray(scene.mask)]
+    dropped = _sample_thresholds(float(np.percentile(inside, 5)))  # 5% of samples dropped
+    clean = _sample_thresholds()
+    th32 = tuple(np.float32(t) for t in dropped)
+    l32 = np.asarray(lights, np.float32)
+
+    def run_branch(branch, thresholds, options=None):
+        fn = jax.jit(_run.__wrapped__, static_argnames=("method", "static"),
+                     **({} if options is None else {"compiler_options": options}))
+        static = () if branch is None else (("branch", branch),)
+        return lambda: fn(images, lights, mask, None, thresholds, {"shared": shared},
+                          method="l2", static=static)
+
+    def needs(options=None):
+        fn = jax.jit(_l2.l2_needs_weights.__wrapped__,
+                     **({} if options is None else {"compiler_options": options}))
+        return lambda: fn(images, mask, None, clean, shared)
+
+    def flat(weighted):
+        fn = jax.jit(_flat_then_reshaped(weighted))
+        return lambda: fn(images, l32, mask, th32 if weighted else clean, shared)
+
+    programs = {
+        "flag pass": needs(),
+        "flag pass, older emitters": needs(OLDER_EMITTERS),
+        "every sample used": run_branch("all_used", clean),
+        "every sample used, older emitters": run_branch("all_used", clean, OLDER_EMITTERS),
+        "every sample used, flat planes reshaped": flat(False),
+        "weighted (5% dropped)": run_branch("weighted", dropped),
+        "weighted (5% dropped), older emitters": run_branch("weighted", dropped,
+                                                             OLDER_EMITTERS),
+        "weighted (5% dropped), flat planes reshaped": flat(True),
+        "both branches in a cond, clean": run_branch(None, clean),
+        "both branches in a cond, 5% dropped": run_branch(None, dropped),
+    }
+    for name, fn in programs.items():
+        jax.clear_caches()  # each program traced and compiled afresh
+        t = time_calls(fn, repeats)
+        rows.append({"K": k, "program": name, "run_s": t["run_s_median"],
+                     "compile_s": t["first_call_s"] - t["run_s_median"]})
+        print(f"K={k:2d} {name:45s} run {1e3 * t['run_s_median']:7.2f} ms   compile "
+              f"{t['first_call_s'] - t['run_s_median']:.3f} s", flush=True)
+    return rows
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     quick = os.environ.get("JAXPS_BENCH_QUICK") == "1"  # the runner's quick mode
@@ -62,57 +117,7 @@ def main():
     parser.add_argument("--out", default=str(RESULTS / "l2_programs.json"))
     args = parser.parse_args()
     surface = jaxps.synthetic.face_like(H, W)
-    rows = []
-    for k in (5, 12):
-        lights = jaxps.synthetic.scanner_lights(20.0, k=k) if k < 12 else ring_lights(k)
-        lights = np.asarray(lights, np.float64)
-        lights /= np.linalg.norm(lights, axis=1, keepdims=True)
-        scene = jaxps.synthetic.render_scene(surface, lights)
-        images = jax.device_put(np.asarray(scene.images))
-        mask = jax.device_put(np.asarray(scene.mask))
-        shared = _l2.host_constants(lights)
-        inside = np.asarray(scene.images)[:, np.asarray(scene.mask)]
-        dropped = _sample_thresholds(float(np.percentile(inside, 5)))  # 5% of samples dropped
-        clean = _sample_thresholds()
-        th32 = tuple(np.float32(t) for t in dropped)
-        l32 = np.asarray(lights, np.float32)
-
-        def run_branch(branch, thresholds, options=None):
-            fn = jax.jit(_run.__wrapped__, static_argnames=("method", "static"),
-                         **({} if options is None else {"compiler_options": options}))
-            static = () if branch is None else (("branch", branch),)
-            return lambda: fn(images, lights, mask, None, thresholds, {"shared": shared},
-                              method="l2", static=static)
-
-        def needs(options=None):
-            fn = jax.jit(_l2.l2_needs_weights.__wrapped__,
-                         **({} if options is None else {"compiler_options": options}))
-            return lambda: fn(images, mask, None, clean, shared)
-
-        def flat(weighted):
-            fn = jax.jit(_flat_then_reshaped(weighted))
-            return lambda: fn(images, l32, mask, th32 if weighted else clean, shared)
-
-        programs = {
-            "flag pass": needs(),
-            "flag pass, older emitters": needs(OLDER_EMITTERS),
-            "every sample used": run_branch("all_used", clean),
-            "every sample used, older emitters": run_branch("all_used", clean, OLDER_EMITTERS),
-            "every sample used, flat planes reshaped": flat(False),
-            "weighted (5% dropped)": run_branch("weighted", dropped),
-            "weighted (5% dropped), older emitters": run_branch("weighted", dropped,
-                                                                 OLDER_EMITTERS),
-            "weighted (5% dropped), flat planes reshaped": flat(True),
-            "both branches in a cond, clean": run_branch(None, clean),
-            "both branches in a cond, 5% dropped": run_branch(None, dropped),  # same program
-        }
-        for name, fn in programs.items():
-            jax.clear_caches()  # each program traced and compiled afresh
-            t = time_calls(fn, args.repeats)
-            rows.append({"K": k, "program": name, "run_s": t["run_s_median"],
-                         "compile_s": t["first_call_s"] - t["run_s_median"]})
-            print(f"K={k:2d} {name:45s} run {1e3 * t['run_s_median']:7.2f} ms   compile "
-                  f"{t['first_call_s'] - t['run_s_median']:.3f} s", flush=True)
+    rows = [row for k in (5, 12) for row in _rows(k, surface, args.repeats)]
     res = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
                       "benchmarks/bench_l2_programs.py", "shape": [H, W],
            "repeats": args.repeats, "env": environment(), "rows": rows}

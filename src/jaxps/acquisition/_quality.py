@@ -2,7 +2,7 @@
 
 A photometric-stereo solve trusts every frame; one corrupt frame (interlace combing, a block of
 rows lost in transfer, a flash that did not fire) poisons every pixel. `check_frames` measures
-each frame (in numpy: a few reductions per frame, faster than XLA-CPU's), flags frames whose
+each frame (in numpy: a few reductions per frame), flags frames whose
 measures cross documented thresholds, and says which frame and why; `drop_flagged` removes the
 flagged frames (and their lights) so the solve uses the K-1 (or fewer) good sources.
 
@@ -174,8 +174,8 @@ def _row_measures(rows, const_rows, row_n, row_z):
 
 
 def _gram(x):
-    """`(K, K)` Gram matrix of `(K, P)` samples, non-finite ones as 0 (numpy: a jitted
-    version cost a fresh process more to trace and load than to run)."""
+    """`(K, K)` Gram matrix of `(K, P)` samples, non-finite ones as 0 (numpy: a few thousand
+    pixels, and one XLA program fewer to trace and load in a fresh process)."""
     x = np.where(np.isfinite(x), x, 0)
     return x @ x.T
 

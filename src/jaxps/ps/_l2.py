@@ -262,8 +262,9 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     (`photometric_stereo` does so for a top-level call on the CPU, so that only the branch it
     runs is traced and compiled).
 
-    The kernels take one plane per sample and channel (`(H*W,)` each) rather than slicing a
-    `(K, H*W, C)` block: under `vmap`, indexing a batched block moves the pixel axis first (a
+    The kernels take one plane per sample and channel (`(H*W,)` each in the `cond`'s
+    branches, `(H, W)` in a host-chosen solve: see docs/photometric_stereo.md) rather than
+    slicing a `(K, H*W, C)` block: under `vmap`, indexing a batched block moves the pixel axis first (a
     transposed copy), while separate planes are read in place. Shared lights take a single
     pass with $L^+$ (`_pixel_all_used`); only if some pixel in the mask dropped a sample is the
     image solved again with per-pixel weights, a real branch outside `vmap` (under `vmap` over

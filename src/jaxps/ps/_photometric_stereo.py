@@ -147,8 +147,9 @@ def photometric_stereo(
         dynamic["shared"] = host_constants(lights)  # no LAPACK call in the jitted solve
         if cpu_top_level(images, mask, sample_mask):
             # L2's branch taken here, as the batch does: only the solve that runs is traced
-            # and compiled (a fresh process compiled both, 0.8 s at 1 MP, K=5), and a call on
-            # the CPU waits for one flag. The stacks go to the device once, not once a call.
+            # and compiled (the `cond` compiled both: 0.5-0.8 s at 1 MP, K=5, in
+            # `benchmarks/bench_l2_programs.py`), for one flag read back from the CPU. The
+            # stacks go to the device once, not once a call.
             images = to_device(images)
             mask, sample_mask = (None if m is None else to_device(m, bool)
                                  for m in (mask, sample_mask))
@@ -207,7 +208,8 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
 
 
 # L2's every-sample-used solve as a top-level CPU program, with XLA-CPU's older emitters:
-# 7.9-8.3 against 10.3-10.4 ms at 1 MP, K=5 (`benchmarks/bench_l2_programs.py`). The flag
-# pass and the weighted solve were no faster with them (the weighted one slower).
+# 7.2-8.3 against 10.3-10.8 ms at 1 MP, K=5, in three runs of
+# `benchmarks/bench_l2_programs.py`. The flag pass and the weighted solve were no faster with
+# them (the weighted one slower), so they keep the default.
 _run_older_emitters = jax.jit(_run.__wrapped__, static_argnames=("method", "static"),
                               compiler_options=OLDER_EMITTERS)
