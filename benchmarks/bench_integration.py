@@ -50,7 +50,7 @@ RUNS = (
     ("bilateral persp default emitters", "bilateral", True, "multigrid"),
 )
 # Rows timed with the grid solvers compiled by XLA-CPU's default (fusion) emitters, as before
-# `_grid._CPU_OPTIONS`: the same solve, in the same process.
+# `core._host.OLDER_EMITTERS`: the same solve, in the same process.
 DEFAULT_EMITTERS = ("lsq persp default emitters", "bilateral persp default emitters")
 
 
@@ -124,7 +124,7 @@ def bini_reference(normals, mask, K, k=2.0, max_iter=150, tol=1e-4, cg_tol=1e-3)
 
 @contextlib.contextmanager
 def default_emitters(on):
-    """`integrate`'s grid solvers without `_grid._CPU_OPTIONS` while `on`."""
+    """`integrate`'s grid solvers without `core._host.OLDER_EMITTERS` while `on`."""
     from jaxps.integration import _integrate
 
     saved = _integrate.bilateral, _integrate.lsq_midpoint

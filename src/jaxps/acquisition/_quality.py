@@ -114,13 +114,12 @@ class QualityReport(NamedTuple):
 
 
 def _measures(grey, mask, dark_level, saturation):
-    """Per-frame measures of `(K, H, W)` grey frames inside the `(H, W)` bool `mask`, in numpy:
+    """Per-frame measures of `(K, H, W)` numpy grey frames inside the `(H, W)` bool `mask`, in numpy:
     a dict of `(K,)` scalars, the `(K, H)` masked row means and which rows are constant
     (finished by `_row_measures`). numpy, not a jitted kernel: the XLA-CPU version's many
     reductions ran slowly, and a fresh process paid its tracing, compiling or loading too. The
     "load frames" stage of `benchmarks/bench_cli.py` at 1 MP fell from 0.46 to 0.28 s (warm)
     and 0.76 to 0.28 s (first run) with this change and the L2 one (docs/speed.md)."""
-    grey = np.asarray(grey)
     k, h, _ = grey.shape
     dtype = grey.dtype
     m = mask.astype(dtype)
@@ -243,7 +242,8 @@ def check_frames(
         raise ValueError(f"mask must have shape {(h, w)}, got {sel.shape}")
     if not sel.any():
         raise ValueError("mask is empty")
-    grey = frames if frames.ndim == 3 else frames.mean(axis=-1)
+    # on the host once: the measures and the consistency test below are numpy
+    grey = np.asarray(frames if frames.ndim == 3 else frames.mean(axis=-1))
     t = thresholds
     dt = grey.dtype
     meas = _measures(grey, sel, *(np.asarray(v, dt) for v in (t.dark_level, t.saturation)))
@@ -282,9 +282,8 @@ def check_frames(
     # may have coplanar lights and predict nothing), so this needs 5 unflagged frames.
     candidates = np.array([not r for r in reasons], bool)
     incons = np.full(k, np.nan)
-    grey_np, sel_np = np.asarray(grey), np.asarray(sel)
     while candidates.sum() >= 5:
-        current = _inconsistency(grey_np, sel_np, candidates)
+        current = _inconsistency(grey, sel, candidates)
         incons = np.where(candidates, current, incons)
         typical = float(np.nanmedian(current))
         worst = int(np.nanargmax(current))

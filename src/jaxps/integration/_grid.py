@@ -292,14 +292,11 @@ def _edges(valid):
 # (the V-cycle's coarse levels, dot products): faster on every DiLiGenT object, with the same
 # steps and MADE (`bench_integration.py`'s "default emitters" rows; docs/integration.md,
 # "Measured on DiLiGenT").
-_CPU_OPTIONS = OLDER_EMITTERS
-
-
 def _with_cpu_options(jitted, static_argnames):
-    """`jitted`, called through a second jit of the same function compiled with `_CPU_OPTIONS`
+    """`jitted`, called through a second jit of the same function compiled with `OLDER_EMITTERS`
     when the call is a top-level one on the CPU (`cpu_top_level`)."""
     cpu = jax.jit(jitted.__wrapped__, static_argnames=static_argnames,
-                  compiler_options=_CPU_OPTIONS)
+                  compiler_options=OLDER_EMITTERS)
 
     def call(*args, **kwargs):
         return (cpu if cpu_top_level(args, kwargs) else jitted)(*args, **kwargs)

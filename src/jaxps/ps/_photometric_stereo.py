@@ -148,6 +148,7 @@ def photometric_stereo(
     # Arrays in `options` are traced; everything else (step limits, loss names, solver
     # objects) is static. Unhashable options fall back to running the wrapper eagerly.
     dynamic = {k: v for k, v in options.items() if isinstance(v, (jax.Array, np.ndarray))}
+    branch = None
     if method == "l2" and isinstance(lights, np.ndarray) and lights.ndim == 2:
         dynamic["shared"] = host_constants(lights)  # no LAPACK call in the jitted solve
         if cpu_top_level(images, mask, sample_mask):
@@ -160,7 +161,8 @@ def photometric_stereo(
                                  for m in (mask, sample_mask))
             weighted = bool(l2_needs_weights(images, mask, sample_mask, thresholds,
                                              dynamic["shared"]))
-            options = {**options, "branch": "weighted" if weighted else "all_used"}
+            branch = "weighted" if weighted else "all_used"
+            options = {**options, "branch": branch}
     static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
     try:
         hash(static)
@@ -169,7 +171,7 @@ def photometric_stereo(
         run = _run.__wrapped__
     if run is not _run:
         images = to_device(images)  # the eager solvers take device arrays
-    elif options.get("branch") == "all_used":
+    elif branch == "all_used":
         run = _run_older_emitters
     return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
                static=static)
