@@ -31,7 +31,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from ..core._host import to_device
 from ..core._safe import safe_sqrt
 from ._grid import PRECONDITIONERS, bilateral, lsq_midpoint
-from ._poisson import dct_poisson
+from ._poisson import _edge_div_of_means, _neumann_from_spectrum, _neumann_spectrum, dct_poisson
 
 # The public names are listed (and re-exported) in `jaxps.integration`.
 
@@ -225,11 +225,10 @@ def integrability_map(
     return _curl(gc, gr, valid)
 
 
-@jax.jit
-def _frankot_chellappa(dzdc, dzdr, mask, scale=1.0):
-    """Least-squares periodic height from its column and row steps, mean 0 over `mask`, times
-    `scale`. Both spectra scale and the -1j are one pass over the half spectrum (no full-size
-    temporaries: this runs at about the speed of scipy.fft, see benchmarks/bench_core.py)."""
+def _fc_spectrum(dzdc, dzdr, scale):
+    """Frankot–Chellappa's height spectrum (half plane) from the column and row steps, times
+    `scale`. Both spectra, the scale and the -1j are one pass over the half spectrum (no
+    full-size temporaries)."""
     h, w = dzdc.shape
     dt = dzdc.dtype
     wc = 2 * jnp.pi * jnp.fft.rfftfreq(w).astype(dt)[None, :]
@@ -239,9 +238,26 @@ def _frankot_chellappa(dzdc, dzdr, mask, scale=1.0):
     factor = jnp.where(d > 0, jnp.asarray(scale, dt) / jnp.where(d > 0, d, 1), 0)  # DC -> 0
     re = wc * fc.real + wr * fr.real
     im = wc * fc.imag + wr * fr.imag
-    z = jnp.fft.irfft2(jax.lax.complex(im * factor, -re * factor), s=(h, w))
-    z = z.astype(dt)
+    return jax.lax.complex(im * factor, -re * factor)
+
+
+# Frankot–Chellappa and the DCT solve run as two programs each at the top level, split at the
+# half spectrum: XLA-CPU ran the inverse FFT at half speed on a spectrum computed in the same
+# program (see `_poisson.py`, above `_dct_spectrum`).
+@functools.partial(jax.jit, static_argnames="shape")
+def _fc_height(g, mask, shape):
+    """Frankot–Chellappa's height from `_fc_spectrum`'s half spectrum, mean 0 over `mask`."""
+    z = jnp.fft.irfft2(g, s=shape).astype(g.real.dtype)
     return z - _mean_over(z, mask)
+
+
+def _frankot_chellappa(dzdc, dzdr, mask, scale=1.0):
+    """Least-squares periodic height from its column and row steps, mean 0 over `mask`, times
+    `scale` (Frankot & Chellappa, IEEE TPAMI 10(4), 1988)."""
+    return _fc_height(_fc_spectrum_jit(dzdc, dzdr, scale), mask, dzdc.shape)
+
+
+_fc_spectrum_jit = jax.jit(_fc_spectrum)
 
 
 def _crop(valid):
@@ -294,21 +310,29 @@ def _orthographic_steps(normals, mask):
 
 @jax.jit
 def _fc_orthographic(normals, mask, pixel_size):
-    """`integrate(method="fc")` without intrinsics: height and whether any normal was valid."""
+    """`integrate(method="fc")` without intrinsics, up to the height's spectrum (`_fc_height`
+    finishes it); and whether any normal was valid."""
     dzdc, dzdr, ok = _orthographic_steps(normals, mask)
-    return _frankot_chellappa(dzdc, dzdr, mask, pixel_size), jnp.any(ok)
+    return _fc_spectrum(dzdc, dzdr, pixel_size), jnp.any(ok)
 
 
 @functools.partial(jax.jit, static_argnames="cam")
-def _dct_fused(normals, mask, pixel_size, cam):
-    """`integrate(method="dct")`: the same steps as the general path, in one jit."""
+def _dct_fused(normals, mask, cam):
+    """`integrate(method="dct")` in two programs: this one, up to the solve's half spectrum
+    (and the valid mask), then `_dct_height`."""
     if cam is None:
         gc, gr, valid = _orthographic_steps(normals, mask)
     else:
         n, valid = _unit_normals(normals, mask)
         gc, gr = _height_steps(n, valid, cam)
-    eta = dct_poisson(gc, gr)
-    return _to_height(eta.astype(normals.dtype), valid, cam, pixel_size, True), jnp.any(valid)
+    return _neumann_spectrum(_edge_div_of_means(gc, gr)), valid
+
+
+@functools.partial(jax.jit, static_argnames=("cam", "shape"))
+def _dct_height(g, valid, pixel_size, cam, shape):
+    """`_dct_fused`'s spectrum to the height, and whether any normal was valid."""
+    eta = _neumann_from_spectrum(g, shape).astype(g.real.dtype)
+    return _to_height(eta, valid, cam, pixel_size, True), jnp.any(valid)
 
 
 def _auto_choice(n, valid, cam):
@@ -444,11 +468,15 @@ def integrate(
     dtype = normals.dtype
     cam = _check_intrinsics(intrinsics)
     if method in ("fc", "dct") and not return_info and (cam is None or method == "dct"):
-        # The common cases in one jit: no full-size temporaries between the steps.
+        # The common cases in two jits each (split at the spectrum, see `_fc_height`): no
+        # full-size temporaries between the steps.
+        pixel_size = to_device(pixel_size, dtype)
         if method == "fc":
-            height, any_valid = _fc_orthographic(normals, mask, to_device(pixel_size, dtype))
+            spectrum, any_valid = _fc_orthographic(normals, mask, pixel_size)
+            height = _fc_height(spectrum, mask, normals.shape[:2])
         else:
-            height, any_valid = _dct_fused(normals, mask, to_device(pixel_size, dtype), cam)
+            spectrum, valid = _dct_fused(normals, mask, cam)
+            height, any_valid = _dct_height(spectrum, valid, pixel_size, cam, normals.shape[:2])
         if not bool(any_valid):
             raise ValueError("normals has no finite, non-zero normal inside mask")
         return height

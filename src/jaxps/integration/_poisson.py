@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -51,8 +53,9 @@ def _reorder_inverse(v):
     return jnp.stack([jnp.stack([ee, eo], -1), jnp.stack([oe, oo], -1)], 1).reshape(n1, n2)
 
 
-def _neumann_solve(rhs):
-    """$L^{-1}$ rhs for the Neumann Laplacian $L$ (mean 0), through one real 2-D FFT each way.
+def _neumann_spectrum(rhs):
+    """The half spectrum of $L^{-1}$ rhs reordered, for the Neumann Laplacian $L$ (mean 0):
+    `_neumann_solve` up to its inverse FFT.
 
     The DCT-II of rhs, a division by $L$'s eigenvalues and the inverse DCT-II, composed into
     one pass over the half spectrum. Makhoul ("A fast cosine transform in one and multiple
@@ -88,8 +91,17 @@ def _neumann_solve(rhs):
     inv_lam = jnp.where(lam > 0, 1 / jnp.where(lam > 0, lam, 1), 0)
     re = jnp.real(s) * inv_lam + jnp.real(d) / (c1 + c2)
     im = jnp.imag(s) / (c1 + s2) + jnp.imag(d) / (s1 + c2)
-    g = 0.5 * jnp.conj(e1 * e2) * lax.complex(re, im)
-    return _reorder_inverse(jnp.fft.irfft2(g, s=(n1, n2)))
+    return 0.5 * jnp.conj(e1 * e2) * lax.complex(re, im)
+
+
+def _neumann_from_spectrum(g, shape):
+    """`_neumann_spectrum`'s half spectrum back to the `shape` grid (inverse FFT, reorder)."""
+    return _reorder_inverse(jnp.fft.irfft2(g, s=shape))
+
+
+def _neumann_solve(rhs):
+    """$L^{-1}$ rhs for the Neumann Laplacian $L$ (mean 0), through one real 2-D FFT each way."""
+    return _neumann_from_spectrum(_neumann_spectrum(rhs), rhs.shape)
 
 
 def _edge_div_of_means(gc, gr):
@@ -105,7 +117,6 @@ def _edge_div_of_means(gc, gr):
     return 0.5 * (gcp[:, :-2] - gcp[:, 2:] + gc * wc + grp[:-2] - grp[2:] + gr * wr)
 
 
-@jax.jit
 def dct_poisson(gc, gr):
     """Least-squares height on the full `(H, W)` grid from per-pixel height steps.
 
@@ -119,5 +130,23 @@ def dct_poisson(gc, gr):
     **Arguments:** `gc`, `gr`: `(H, W)` height steps per column and per row.
 
     **Returns:** `(H, W)` height with mean 0 over the rectangle, dtype of `gc`.
+
+    Called outside a trace, this runs as two programs split at the half spectrum (the comment
+    above `_dct_spectrum` says why); inside a user's `jit` both are traced into the caller's program.
     """
-    return _neumann_solve(_edge_div_of_means(gc, gr)).astype(gc.dtype)
+    return _dct_height(_dct_spectrum(gc, gr), gc.shape, gc.dtype)
+
+
+# Why two programs: on XLA-CPU the inverse FFT of a spectrum computed in the same program ran
+# at half the speed of the same FFT on a program's argument (7.4 against 2.8-3.1 ms at
+# 1280x1024, per-thunk times from `jax.profiler`), and `integrate(method="dct")` took 24-25 ms
+# as one program against 20-22 ms as two, results identical (`bench_core.py`,
+# docs/speed.md). Frankot–Chellappa is split the same way (`_integrate.py`).
+@jax.jit
+def _dct_spectrum(gc, gr):
+    return _neumann_spectrum(_edge_div_of_means(gc, gr))
+
+
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _dct_height(g, shape, dtype):
+    return _neumann_from_spectrum(g, shape).astype(dtype)
