@@ -138,10 +138,10 @@ def dct_poisson(gc, gr):
 
 
 # Why two programs: on XLA-CPU the inverse FFT of a spectrum computed in the same program ran
-# at half the speed of the same FFT on a program's argument (7.4 against 2.8-3.1 ms at
-# 1280x1024, per-thunk times from `jax.profiler`), and `integrate(method="dct")` took 24-25 ms
-# as one program against 20-22 ms as two, results identical (`bench_core.py`,
-# docs/speed.md). Frankot–Chellappa is split the same way (`_integrate.py`).
+# at about half the speed of the same FFT on a program argument (7.3-7.5 against 4.0-4.3 ms
+# at 1280x1024, per-thunk times from `jax.profiler`). Split, `integrate(method="dct")` took
+# 22.1-22.7 against 23.8-25.4 ms and FC 18.3-18.8 against 21.1-21.6 ms, results identical to
+# float32 rounding (`benchmarks/bench_spectral_split.py`, two runs).
 @jax.jit
 def _dct_spectrum(gc, gr):
     return _neumann_spectrum(_edge_div_of_means(gc, gr))

@@ -1,0 +1,136 @@
+"""Frankot–Chellappa and the DCT solve as one program or as two split at the half spectrum.
+
+`integrate(method="fc")` and `method="dct"` (orthographic, at the top level) run as two
+programs each: the height steps and the forward transform up to the solved half spectrum, then
+the inverse FFT and the masked mean. This times, at 1280x1024, both integrators built from the
+same library functions as one program (what `integrate` compiled before) and as two (what it
+runs now), in alternating blocks of calls so that the machine's slow spells hit both alike.
+It also reads each program's FFT thunks from a `jax.profiler` trace: XLA-CPU's inverse FFT of
+a spectrum computed in the same program ran at about half the speed of the same FFT on a
+program argument, which is what the split gains.
+
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_spectral_split.py
+    -> benchmarks/results/spectral_split.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import glob
+import gzip
+import json
+import os
+import statistics
+import sys
+import tempfile
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxps
+from jaxps.integration import _integrate as integ
+
+try:
+    from benchmarks._common import environment, write_json
+except ImportError:  # run as a script
+    import pathlib
+
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import environment, write_json
+
+H, W = 1024, 1280
+
+
+def variants(normals, mask):
+    """{integrator: {"one program": fn, "two programs": fn}}, each fn -> height."""
+    pixel_size = jnp.asarray(1.0, normals.dtype)
+    shape = normals.shape[:2]
+
+    @jax.jit
+    def fc_one(normals, mask, pixel_size):
+        spectrum, _ = integ._fc_orthographic(normals, mask, pixel_size)
+        return integ._fc_height(spectrum, mask, shape)
+
+    @jax.jit
+    def dct_one(normals, mask, pixel_size):
+        spectrum, valid = integ._dct_fused(normals, mask, None)
+        return integ._dct_height(spectrum, valid, pixel_size, None, shape)[0]
+
+    def fc_two():
+        return integ._fc_height(integ._fc_orthographic(normals, mask, pixel_size)[0], mask,
+                                shape)
+
+    def dct_two():
+        spectrum, valid = integ._dct_fused(normals, mask, None)
+        return integ._dct_height(spectrum, valid, pixel_size, None, shape)[0]
+
+    return {"fc": {"one program": lambda: fc_one(normals, mask, pixel_size),
+                   "two programs": fc_two},
+            "dct": {"one program": lambda: dct_one(normals, mask, pixel_size),
+                    "two programs": dct_two}}
+
+
+def alternating(fns, repeats, block=5):
+    """Median seconds of each function's calls, made in alternating blocks of `block`."""
+    runs = {name: [] for name in fns}
+    for fn in fns.values():
+        jax.block_until_ready(fn())  # compile
+    while min(len(r) for r in runs.values()) < repeats:
+        for name, fn in fns.items():
+            for _ in range(block):
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn())
+                runs[name].append(time.perf_counter() - t0)
+    return {name: statistics.median(r) for name, r in runs.items()}
+
+
+def fft_thunks(fn, calls=10):
+    """Median milliseconds of each FFT thunk over `calls` traced calls of `fn`."""
+    with tempfile.TemporaryDirectory() as folder:
+        jax.profiler.start_trace(folder)
+        for _ in range(calls):
+            jax.block_until_ready(fn())
+        jax.profiler.stop_trace()
+        path = glob.glob(os.path.join(folder, "**", "*.trace.json.gz"), recursive=True)[0]
+        with gzip.open(path) as f:
+            events = json.load(f)["traceEvents"]
+    times = collections.defaultdict(list)
+    for e in events:
+        if e.get("ph") == "X" and e["name"].startswith("fft"):
+            times[e["args"].get("hlo_module", ""), e["name"]].append(e["dur"] / 1e3)
+    return sorted(statistics.median(t) for t in times.values())
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--repeats", type=int, default=40)
+    args = ap.parse_args()
+    lights = jaxps.synthetic.scanner_lights(20.0)
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(H, W), lights)
+    normals = jax.block_until_ready(
+        jaxps.photometric_stereo(jax.device_put(scene.images), lights).normals)
+    mask = jnp.ones((H, W), bool)
+    rows = []
+    for method, fns in variants(normals, mask).items():
+        heights = [np.asarray(fn()) for fn in fns.values()]
+        medians = alternating(fns, args.repeats)
+        for name, fn in fns.items():
+            rows.append({"method": method, "program": name, "run_s": medians[name],
+                         "fft_thunks_ms": fft_thunks(fn),
+                         "max_abs_difference": float(np.abs(heights[0] - heights[1]).max())})
+    result = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
+                         "benchmarks/bench_spectral_split.py",
+              "shape": [H, W], "repeats": args.repeats, "rows": rows, "env": environment()}
+    result["env"]["OPENBLAS_NUM_THREADS"] = os.environ.get("OPENBLAS_NUM_THREADS")
+    write_json("spectral_split", result)
+    for r in rows:
+        print(f"{r['method']:>4} {r['program']:<13} {1e3 * r['run_s']:7.2f} ms   FFT thunks "
+              f"{', '.join(f'{t:.2f}' for t in r['fft_thunks_ms'])} ms   "
+              f"max |difference| {r['max_abs_difference']:.2g}")
+
+
+if __name__ == "__main__":
+    main()
