@@ -5,9 +5,10 @@ programs each: the height steps and the forward transform up to the solved half 
 the inverse FFT and the masked mean. This times, at 1280x1024, both integrators built from the
 same library functions as one program (what `integrate` compiled before) and as two (what it
 runs now), in alternating blocks of calls so that the machine's slow spells hit both alike.
-It also reads each program's FFT thunks from a `jax.profiler` trace: XLA-CPU's inverse FFT of
-a spectrum computed in the same program ran at about half the speed of the same FFT on a
-program argument, which is what the split gains.
+It also reads each program's thunks (fusions and FFTs) from a `jax.profiler` trace: XLA-CPU's
+inverse FFT of a spectrum computed in the same program ran at about half the speed of the
+same FFT on a program argument, which is what the split gains. For scale, it times scipy.fft's
+`dctn` + `idctn` of one plane, the transforms of `bench_core.py`'s DCT baseline.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_spectral_split.py
     -> benchmarks/results/spectral_split.json
@@ -87,8 +88,9 @@ def alternating(fns, repeats, block=5):
     return {name: statistics.median(r) for name, r in runs.items()}
 
 
-def fft_thunks(fn, calls=10):
-    """Median milliseconds of each FFT thunk over `calls` traced calls of `fn`."""
+def thunks(fn, calls=10):
+    """Median milliseconds of each XLA thunk (fusion, FFT, ...) of `fn`'s programs over
+    `calls` traced calls, keyed `"program/thunk"`, slowest first."""
     with tempfile.TemporaryDirectory() as folder:
         jax.profiler.start_trace(folder)
         for _ in range(calls):
@@ -99,9 +101,24 @@ def fft_thunks(fn, calls=10):
             events = json.load(f)["traceEvents"]
     times = collections.defaultdict(list)
     for e in events:
-        if e.get("ph") == "X" and e["name"].startswith("fft"):
-            times[e["args"].get("hlo_module", ""), e["name"]].append(e["dur"] / 1e3)
-    return sorted(statistics.median(t) for t in times.values())
+        module = e.get("args", {}).get("hlo_module")
+        if e.get("ph") == "X" and module and "hlo_op" in e["args"]:
+            times[f"{module}/{e['name']}"].append(e["dur"] / 1e3)
+    return dict(sorted(((k, statistics.median(t)) for k, t in times.items()),
+                       key=lambda kv: -kv[1]))
+
+
+def scipy_dct_pair(rhs, repeats):
+    """Median seconds of scipy.fft's `dctn` + `idctn` (2 workers) of one float32 plane: the
+    transforms alone of the benchmark's scipy baseline (`bench_core.py`)."""
+    import scipy.fft
+
+    runs = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        scipy.fft.idctn(scipy.fft.dctn(rhs, norm="ortho", workers=2), norm="ortho", workers=2)
+        runs.append(time.perf_counter() - t0)
+    return statistics.median(runs)
 
 
 def main():
@@ -118,18 +135,24 @@ def main():
         heights = [np.asarray(fn()) for fn in fns.values()]
         medians = alternating(fns, args.repeats)
         for name, fn in fns.items():
+            times = thunks(fn)
             rows.append({"method": method, "program": name, "run_s": medians[name],
-                         "fft_thunks_ms": fft_thunks(fn),
+                         "fft_thunks_ms": sorted(t for k, t in times.items()
+                                                 if k.split("/")[1].startswith("fft")),
+                         "thunks_ms": times,
                          "max_abs_difference": float(np.abs(heights[0] - heights[1]).max())})
     result = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
                          "benchmarks/bench_spectral_split.py",
-              "shape": [H, W], "repeats": args.repeats, "rows": rows, "env": environment()}
+              "shape": [H, W], "repeats": args.repeats, "rows": rows,
+              "scipy_dctn_idctn_s": scipy_dct_pair(np.asarray(normals[..., 0]), args.repeats),
+              "env": environment()}
     result["env"]["OPENBLAS_NUM_THREADS"] = os.environ.get("OPENBLAS_NUM_THREADS")
     write_json("spectral_split", result)
     for r in rows:
         print(f"{r['method']:>4} {r['program']:<13} {1e3 * r['run_s']:7.2f} ms   FFT thunks "
               f"{', '.join(f'{t:.2f}' for t in r['fft_thunks_ms'])} ms   "
               f"max |difference| {r['max_abs_difference']:.2g}")
+    print(f"scipy.fft dctn + idctn alone: {1e3 * result['scipy_dctn_idctn_s']:.2f} ms")
 
 
 if __name__ == "__main__":

@@ -138,10 +138,10 @@ def dct_poisson(gc, gr):
 
 
 # Why two programs: on XLA-CPU the inverse FFT of a spectrum computed in the same program ran
-# at about half the speed of the same FFT on a program argument (7.3-7.5 against 4.0-4.3 ms
+# at about half the speed of the same FFT on a program argument (6.6-7.5 against 3.2-4.3 ms
 # at 1280x1024, per-thunk times from `jax.profiler`). Split, `integrate(method="dct")` took
-# 22.1-22.7 against 23.8-25.4 ms and FC 18.3-18.8 against 21.1-21.6 ms, results identical to
-# float32 rounding (`benchmarks/bench_spectral_split.py`, two runs).
+# 21.5-22.7 against 22.4-25.4 ms and FC 16.6-18.8 against 18.5-21.6 ms, results the same to
+# float32 rounding (`benchmarks/bench_spectral_split.py`, three runs).
 @jax.jit
 def _dct_spectrum(gc, gr):
     return _neumann_spectrum(_edge_div_of_means(gc, gr))
