@@ -281,3 +281,34 @@ def test_l2_on_numpy_lights_imports_no_scipy():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, env={**__import__("os").environ, "JAXPS_CACHE_DIR": "off"})
     assert "scipy.linalg" not in out.stdout, out.stdout
+
+
+@pytest.mark.parametrize("case", ["clean", "dropped"])
+def test_eager_solvers_take_the_l2_branch_on_the_host(case, monkeypatch):
+    # `semi_calibrated` and `oren_nayar` run outside jit and finish (or start) with an L2
+    # solve: `ps_l2_eager` takes its branch on the host, like a top-level L2 call, and must
+    # agree with `ps_l2`'s `cond`.
+    from jaxps.ps import _l2
+
+    s = face_scene(40)
+    images = np.array(s.images)[..., None]
+    if case == "dropped":
+        images[1, :12] = 1.0  # saturated
+        images[3][np.random.default_rng(2).uniform(size=images[3].shape) < 0.05] = np.nan
+    lights = jnp.asarray(s.lights) * jnp.array([1.0, 0.8, 1.1, 1.05, 0.9])[:, None]
+    thresholds = tuple(jnp.float32(t) for t in (1e-3, 1.0, 0.02))
+    mask = jnp.asarray(s.mask)
+    flags = []
+    needs = _l2.l2_needs_weights
+    monkeypatch.setattr(_l2, "l2_needs_weights", lambda *a: flags.append(needs(*a)) or flags[-1])
+    host = _l2.ps_l2_eager(images, lights, mask, None, thresholds)
+    traced = _l2.ps_l2(images, lights, mask, None, thresholds)
+    assert [bool(f) for f in flags] == [case == "dropped"]
+    np.testing.assert_array_equal(host.status, traced.status)
+    np.testing.assert_array_equal(host.n_used, traced.n_used)
+    for a, b in zip(host[:5], traced[:5]):
+        assert a.shape == b.shape and a.dtype == b.dtype
+        np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    # inside a trace the helper is ps_l2 itself (no flag read back)
+    jax.jit(lambda x: _l2.ps_l2_eager(x, lights, mask, None, thresholds))(images)
+    assert len(flags) == 1

@@ -18,13 +18,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from ..core._host import cpu_top_level
 from ..core._linalg import REL_DET_MIN, solve3
 from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
 __all__ = ["INTO_MAX_PLANES", "PSResult", "host_constants", "l2_into", "l2_needs_weights",
-           "l2_solve", "l2_write", "ps_l2"]
+           "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
 
 
 class PSResult(NamedTuple):
@@ -317,6 +318,19 @@ def l2_needs_weights(images, mask, sample_mask, thresholds, shared):
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
     shared = _cast_shared(shared, images.dtype)
     return jnp.any(_solve_all_used(images, mask, sample_mask, thresholds, shared)[-1])
+
+
+def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:
+    """`ps_l2` for solvers that run outside `jit` (`semi_calibrated`, `oren_nayar`), same
+    arguments. A call on the CPU with no tracer in its arguments and `(K, 3)` lights takes the
+    branch on the host, as `photometric_stereo` does for L2 (`l2_needs_weights`, then only the
+    chosen solve is compiled); anything else is `ps_l2` with its `cond`."""
+    if lights.ndim != 2 or not cpu_top_level(images, lights, mask, sample_mask, thresholds):
+        return ps_l2(images, lights, mask, sample_mask, thresholds)
+    shared = host_constants(np.asarray(lights, np.float64))
+    weighted = bool(l2_needs_weights(images, mask, sample_mask, thresholds, shared))
+    return ps_l2(images, lights, mask, sample_mask, thresholds, shared,
+                 branch="weighted" if weighted else "all_used")
 
 
 @functools.partial(jax.jit, static_argnames=("weighted", "dtype"))

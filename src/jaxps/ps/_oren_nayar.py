@@ -37,7 +37,7 @@ from ..shading._oren_nayar import (
     _shading,
     fit_roughness,
 )
-from ._l2 import PSResult, ps_l2
+from ._l2 import PSResult, ps_l2_eager
 
 __all__ = ["ps_oren_nayar"]
 
@@ -147,7 +147,7 @@ def _ps_oren_nayar(images, lights, mask, sample_mask, thresholds, fixed, pool, f
     # BatchedLM is a while_loop, which reverse mode cannot differentiate: this solver's outputs
     # are constants to `jax.grad` (zero gradients, documented in docs/photometric_stereo.md).
     images, lights = jax.lax.stop_gradient(images), jax.lax.stop_gradient(lights)
-    base = ps_l2(images, lights, mask, sample_mask, thresholds)
+    base = ps_l2_eager(images, lights, mask, sample_mask, thresholds)
     core = eqx.filter_jit(_core)
     out = core(images, lights, mask, sample_mask, thresholds, base, fixed,
                jnp.asarray(sigma0**2, dtype), jnp.asarray(sigma_max**2, dtype), solver,

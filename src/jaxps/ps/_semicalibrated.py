@@ -36,8 +36,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from ..core._host import cpu_top_level
 from ..core._linalg import REL_DET_MIN, solve3
-from ._l2 import PSResult, ps_l2
+from ._l2 import PSResult, ps_l2_eager
 
 __all__ = ["ps_semi_calibrated"]
 
@@ -208,10 +209,17 @@ def ps_semi_calibrated(
                    fallback, steps, costs)
 
 
-@jax.jit
 def _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged, fallback, steps,
             costs):
-    res = ps_l2(images, e[:, None].astype(lights.dtype) * lights, mask, sample_mask, thresholds)
+    """Calibrated L2 with the intensities `e` folded into the lights, and the fit's `info`.
+    Outside a trace the scaled lights are formed on the host, so that `ps_l2_eager` takes
+    L2's branch there and compiles only the solve it runs."""
+    if cpu_top_level(images, lights, e, mask, sample_mask, thresholds):
+        lights_e = (np.asarray(e, np.float64)[:, None] * np.asarray(lights, np.float64))
+        lights_e = lights_e.astype(lights.dtype)
+    else:
+        lights_e = e[:, None].astype(lights.dtype) * lights
+    res = ps_l2_eager(images, lights_e, mask, sample_mask, thresholds)
     return PSResult(
         res.normals, res.albedo, res.status, res.n_used, res.residual,
         {"intensities": e, "frontal_intensities": e0, "converged": converged,
