@@ -243,7 +243,7 @@ def _fc_spectrum(dzdc, dzdr, scale):
 
 # Frankot–Chellappa and the DCT solve run as two programs each at the top level, split at the
 # half spectrum: XLA-CPU ran the inverse FFT at half speed on a spectrum computed in the same
-# program (see `_poisson.py`, above `_dct_spectrum`).
+# program (see `_poisson.py`, above `_poisson_spectrum`).
 @functools.partial(jax.jit, static_argnames="shape")
 def _fc_height(g, mask, shape):
     """Frankot–Chellappa's height from `_fc_spectrum`'s half spectrum, mean 0 over `mask`."""
@@ -251,13 +251,13 @@ def _fc_height(g, mask, shape):
     return z - _mean_over(z, mask)
 
 
+_fc_spectrum_jit = jax.jit(_fc_spectrum)
+
+
 def _frankot_chellappa(dzdc, dzdr, mask, scale=1.0):
     """Least-squares periodic height from its column and row steps, mean 0 over `mask`, times
     `scale` (Frankot & Chellappa, IEEE TPAMI 10(4), 1988)."""
     return _fc_height(_fc_spectrum_jit(dzdc, dzdr, scale), mask, dzdc.shape)
-
-
-_fc_spectrum_jit = jax.jit(_fc_spectrum)
 
 
 def _crop(valid):
@@ -309,7 +309,7 @@ def _orthographic_steps(normals, mask):
 
 
 @jax.jit
-def _fc_orthographic(normals, mask, pixel_size):
+def _fc_spectrum_from_normals(normals, mask, pixel_size):
     """`integrate(method="fc")` without intrinsics, up to the height's spectrum (`_fc_height`
     finishes it); and whether any normal was valid."""
     dzdc, dzdr, ok = _orthographic_steps(normals, mask)
@@ -317,7 +317,7 @@ def _fc_orthographic(normals, mask, pixel_size):
 
 
 @functools.partial(jax.jit, static_argnames="cam")
-def _dct_fused(normals, mask, cam):
+def _dct_spectrum_from_normals(normals, mask, cam):
     """`integrate(method="dct")` in two programs: this one, up to the solve's half spectrum
     (and the valid mask), then `_dct_height`."""
     if cam is None:
@@ -330,7 +330,7 @@ def _dct_fused(normals, mask, cam):
 
 @functools.partial(jax.jit, static_argnames=("cam", "shape"))
 def _dct_height(g, valid, pixel_size, cam, shape):
-    """`_dct_fused`'s spectrum to the height, and whether any normal was valid."""
+    """`_dct_spectrum_from_normals`'s spectrum to the height, and whether any normal was valid."""
     eta = _neumann_from_spectrum(g, shape).astype(g.real.dtype)
     return _to_height(eta, valid, cam, pixel_size, True), jnp.any(valid)
 
@@ -472,10 +472,10 @@ def integrate(
         # full-size temporaries between the steps.
         pixel_size = to_device(pixel_size, dtype)
         if method == "fc":
-            spectrum, any_valid = _fc_orthographic(normals, mask, pixel_size)
+            spectrum, any_valid = _fc_spectrum_from_normals(normals, mask, pixel_size)
             height = _fc_height(spectrum, mask, normals.shape[:2])
         else:
-            spectrum, valid = _dct_fused(normals, mask, cam)
+            spectrum, valid = _dct_spectrum_from_normals(normals, mask, cam)
             height, any_valid = _dct_height(spectrum, valid, pixel_size, cam, normals.shape[:2])
         if not bool(any_valid):
             raise ValueError("normals has no finite, non-zero normal inside mask")

@@ -132,9 +132,10 @@ def dct_poisson(gc, gr):
     **Returns:** `(H, W)` height with mean 0 over the rectangle, dtype of `gc`.
 
     Called outside a trace, this runs as two programs split at the half spectrum (the comment
-    above `_dct_spectrum` says why); inside a user's `jit` both are traced into the caller's program.
+    above `_poisson_spectrum` says why); inside a user's `jit` both are traced into the
+    caller's program.
     """
-    return _dct_height(_dct_spectrum(gc, gr), gc.shape, gc.dtype)
+    return _poisson_height(_poisson_spectrum(gc, gr), gc.shape, gc.dtype)
 
 
 # Why two programs: on XLA-CPU the inverse FFT of a spectrum computed in the same program ran
@@ -143,10 +144,10 @@ def dct_poisson(gc, gr):
 # 21.5-22.7 against 22.4-25.4 ms and FC 16.6-18.8 against 18.5-21.6 ms, results the same to
 # float32 rounding (`benchmarks/bench_spectral_split.py`, three runs).
 @jax.jit
-def _dct_spectrum(gc, gr):
+def _poisson_spectrum(gc, gr):
     return _neumann_spectrum(_edge_div_of_means(gc, gr))
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2))
-def _dct_height(g, shape, dtype):
+def _poisson_height(g, shape, dtype):
     return _neumann_from_spectrum(g, shape).astype(dtype)
