@@ -164,16 +164,24 @@ def test_per_pixel_lights_match_shared():
     np.testing.assert_array_equal(per_pixel.status, shared.status)
 
 
-@pytest.mark.parametrize("case", ["clean", "dropped", "colour", "sample_mask", "uint8_mask"])
-def test_host_chosen_branch_equals_the_traced_cond(case):
+@pytest.mark.parametrize("case", ["clean", "dropped", "dropped_finite", "colour_dropped",
+                                  "colour", "sample_mask", "uint8_mask"])
+def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
     # A top-level call on the CPU picks L2's solve on the host and compiles only that one; a
     # call inside a jit takes the `cond` in the program. Both must give the same result.
+    import jaxps.ps._photometric_stereo as wrapper
+    from jaxps.ps import _l2
+
     s = face_scene(40)
     images, options = np.array(s.images), {"mask": np.asarray(s.mask)}
-    if case == "dropped":
+    if case in ("dropped", "dropped_finite", "colour_dropped"):
         images[1, :12] = 1.0  # saturated
-        images[3][np.random.default_rng(2).uniform(size=images[3].shape) < 0.05] = np.nan
         options["shadow_threshold"] = 0.02
+    if case == "dropped":
+        images[3][np.random.default_rng(2).uniform(size=images[3].shape) < 0.05] = np.nan
+    if case == "colour_dropped":
+        images = images[..., None] * np.array([1.0, 0.7, 0.4], np.float32)
+        images[2, 20:, :5, 1] = 1.0  # one channel saturated
     elif case == "colour":
         images = images[..., None] * np.array([1.0, 0.7, 0.4], np.float32)
     elif case == "sample_mask":
@@ -181,6 +189,9 @@ def test_host_chosen_branch_equals_the_traced_cond(case):
         options["sample_mask"][2, 10:20] = False
     elif case == "uint8_mask":
         options["mask"] = np.asarray(s.mask).astype(np.uint8) * 255
+    branches = []
+    choose = _l2.l2_branch
+    monkeypatch.setattr(wrapper, "l2_branch", lambda *a: branches.append(choose(*a)) or branches[-1])
     host = jaxps.photometric_stereo(images, s.lights, **options)
     traced = jax.jit(lambda x: jaxps.photometric_stereo(x, s.lights, **options))(images)
     np.testing.assert_array_equal(host.status, traced.status)
@@ -188,8 +199,11 @@ def test_host_chosen_branch_equals_the_traced_cond(case):
     for a, b in zip(host[:5], traced[:5]):
         assert a.shape == b.shape and a.dtype == b.dtype
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
-    dropping = case in ("dropped", "sample_mask")
+    dropping = case in ("dropped", "dropped_finite", "colour_dropped", "sample_mask")
     assert (np.asarray(host.n_used)[np.asarray(s.mask)] < len(images)).any() == dropping
+    expected = {"dropped": "weighted", "dropped_finite": "weighted_finite",
+                "colour_dropped": "weighted_finite", "sample_mask": "weighted_finite"}
+    assert branches == [expected.get(case, "all_used")]
 
 
 def test_works_under_jit_and_vmap_over_captures():
@@ -303,7 +317,7 @@ def test_eager_solvers_take_the_l2_branch_on_the_host(case, monkeypatch):
     monkeypatch.setattr(_l2, "l2_needs_weights", lambda *a: flags.append(needs(*a)) or flags[-1])
     host = _l2.ps_l2_eager(images, lights, mask, None, thresholds)
     traced = _l2.ps_l2(images, lights, mask, None, thresholds)
-    assert [bool(f) for f in flags] == [case == "dropped"]
+    assert [bool(f) for f in flags] == [case == "dropped"]  # one flag, read on the host
     np.testing.assert_array_equal(host.status, traced.status)
     np.testing.assert_array_equal(host.n_used, traced.n_used)
     for a, b in zip(host[:5], traced[:5]):

@@ -27,8 +27,8 @@ from ._l2 import (
     INTO_MAX_PLANES,
     PSResult,
     host_constants,
+    l2_branch,
     l2_into,
-    l2_needs_weights,
     l2_solve,
     l2_write,
 )
@@ -161,10 +161,12 @@ def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, 
         lt, consts = shared if shared_lights else constants(lights[i])
         msk = mask if shared_mask else jax.device_put(mask[i])
         smask = None if sample_mask is None else jax.device_put(sample_mask[i])
-        weighted = bool(l2_needs_weights(x, msk, smask, thresholds, consts))
+        branch = l2_branch(x, msk, smask, thresholds, consts)
+        weighted = branch != "all_used"
         args = (x, lt, msk, smask, thresholds, consts)
         if weighted or planes > INTO_MAX_PLANES:
-            out = l2_write(out, i, l2_solve(*args, weighted=weighted, dtype=dtype))
+            out = l2_write(out, i, l2_solve(*args, weighted=weighted, dtype=dtype,
+                                            all_finite=branch == "weighted_finite"))
         else:
             out = l2_into(out, i, *args, weighted=False, dtype=dtype)
     return PSResult(*out)

@@ -24,8 +24,8 @@ from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["INTO_MAX_PLANES", "PSResult", "host_constants", "l2_into", "l2_needs_weights",
-           "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
+__all__ = ["INTO_MAX_PLANES", "PSResult", "host_constants", "l2_all_finite", "l2_branch",
+           "l2_into", "l2_needs_weights", "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
 
 
 class PSResult(NamedTuple):
@@ -61,13 +61,28 @@ def _count(flags):
     return sum(f.astype(jnp.int32) for f in flags)
 
 
-def _samples(x, usable, thresholds):
+def _samples(x, usable, thresholds, all_finite=False):
     """Sort one pixel's samples: `x` (K lists of C scalars) with non-finite ones zeroed, the
     grey values `g`, and the per-sample flags finite / unsaturated (and usable) / used (also
-    above the shadow threshold). Also the status cases they decide, in `first_status` order."""
+    above the shadow threshold). Also the status cases they decide, in `first_status` order.
+
+    `all_finite`: the caller has checked that every sample is finite (`l2_all_finite`), so
+    nothing is zeroed and `INVALID` cannot occur. XLA-CPU wrote each zeroed sample to memory
+    as its own plane, read again by every output's pass; without them the weighted solve at
+    1 MP took 22-25 against 53-56 ms at K=12 and 15 against 20-22 ms at K=5, bit-identical
+    (`benchmarks/bench_l2_programs.py`)."""
     dark, saturation, shadow = thresholds
     ks = range(len(x))
     g = [_grey(xk) for xk in x]
+    if all_finite:
+        unsat = [usable[k] & ~_any([v >= saturation for v in x[k]]) for k in ks]
+        used = [unsat[k] & (g[k] >= shadow) for k in ks]
+        cases = [
+            (functools.reduce(jnp.maximum, g) <= dark, Status.DARK),
+            (_count(unsat) < 3, Status.SATURATED),
+            (_count(used) < 3, Status.TOO_FEW_LIGHTS),
+        ]
+        return x, g, used, cases
     finite = [jnp.isfinite(v) for v in g]
     g = [jnp.where(finite[k], g[k], 0) for k in ks]
     x = [[jnp.where(finite[k], v, 0) for v in x[k]] for k in ks]
@@ -136,15 +151,15 @@ def _pixel_all_used(x, usable, inside, shared, thresholds):
     return *out, inside & ~clean
 
 
-def _pixel_weighted(x, usable, inside, lights, thresholds):
+def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
     """Solve one pixel over its usable samples: $b = (L^T W L)^{-1} L^T W i$ by cofactors.
 
     `x` and `usable` as in `_pixel_all_used`; `lights` a list of K `[lx, ly, lz]` (shared
-    scalars or this pixel's own vectors).
+    scalars or this pixel's own vectors); `all_finite` as in `_samples`.
     """
     ks = range(len(x))
     dtype = x[0][0].dtype
-    x, g, used, cases = _samples(x, usable, thresholds)
+    x, g, used, cases = _samples(x, usable, thresholds, all_finite)
     w = [u.astype(dtype) for u in used]
     wl = [[w[k] * lights[k][p] for p in range(3)] for k in ks]
     a = [[sum(wl[k][p] * lights[k][q] for k in ks) for q in range(3)] for p in range(3)]
@@ -225,7 +240,7 @@ def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True):
         *_planes(images, sample_mask, mask, flat), shared, thresholds)
 
 
-def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True):
+def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, all_finite=False):
     """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights."""
     k = images.shape[0]
     per_pixel = lights.ndim == 4
@@ -236,7 +251,8 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True):
     else:
         lt = [[lights[i, p] for p in range(3)] for i in range(k)]
     axis = None if sample_mask is None else 0
-    return _lift(_pixel_weighted, (0, axis, 0, 0 if per_pixel else None, None), flat)(
+    kernel = functools.partial(_pixel_weighted, all_finite=all_finite)
+    return _lift(kernel, (0, axis, 0, 0 if per_pixel else None, None), flat)(
         *_planes(images, sample_mask, mask, flat), lt, thresholds)
 
 
@@ -259,7 +275,8 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     `sample_mask` `(K, H, W)` bool or None (every sample allowed: no mask planes are read, or
     copied into the `cond` below); `shared`: `host_constants(lights)` or None (computed here,
     differentiably); `branch`: None (decided in the program, by the `cond` below), or the
-    solve already chosen on the host with `l2_needs_weights`: `"all_used"` or `"weighted"`
+    solve already chosen on the host with `l2_needs_weights`: `"all_used"` or `"weighted"`,
+    or `"weighted_finite"` when `l2_all_finite` has also found every sample finite
     (`photometric_stereo` does so for a top-level call on the CPU, so that only the branch it
     runs is traced and compiled).
 
@@ -278,14 +295,15 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     elif shared is not None:
         shared = _cast_shared(shared, images.dtype)
 
-    if branch not in (None, "all_used", "weighted"):
-        raise ValueError(f"branch must be None, 'all_used' or 'weighted', got {branch!r}")
+    if branch not in (None, "all_used", "weighted", "weighted_finite"):
+        raise ValueError("branch must be None, 'all_used', 'weighted' or 'weighted_finite', "
+                         f"got {branch!r}")
     if lights.ndim == 2 and branch == "all_used":
         out = _stacked(_solve_all_used(images, mask, sample_mask, thresholds, shared,
                                        flat=False)[:-1])
-    elif lights.ndim == 2 and branch == "weighted":
+    elif lights.ndim == 2 and branch in ("weighted", "weighted_finite"):
         out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds,
-                                       flat=False))
+                                       flat=False, all_finite=branch == "weighted_finite"))
     elif lights.ndim == 2 and branch is None:
         # The flag pass costs one read of the images; it lets the branches take only the inputs
         # as operands (planes or results built outside a `cond` would be copied into it). Where
@@ -320,22 +338,38 @@ def l2_needs_weights(images, mask, sample_mask, thresholds, shared):
     return jnp.any(_solve_all_used(images, mask, sample_mask, thresholds, shared)[-1])
 
 
+@jax.jit
+def l2_all_finite(images):
+    """Whether every sample of `images` is finite: asked only once `l2_needs_weights` has
+    chosen the weighted solve, whose `all_finite` form then zeroes nothing."""
+    return jnp.all(jnp.isfinite(images))
+
+
+def l2_branch(images, mask, sample_mask, thresholds, shared) -> str:
+    """`ps_l2`'s `branch`, taken on the host: `"all_used"`, or `"weighted_finite"` /
+    `"weighted"` as every sample is finite or not. Waits for one flag (two when weighted)."""
+    if not bool(l2_needs_weights(images, mask, sample_mask, thresholds, shared)):
+        return "all_used"
+    return "weighted_finite" if bool(l2_all_finite(images)) else "weighted"
+
+
 def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:
     """`ps_l2` for solvers that run outside `jit` (`semi_calibrated`, `oren_nayar`), same
     arguments. A call on the CPU with no tracer in its arguments and `(K, 3)` lights takes the
-    branch on the host, as `photometric_stereo` does for L2 (`l2_needs_weights`, then only the
+    branch on the host, as `photometric_stereo` does for L2 (`l2_branch`, then only the
     chosen solve is compiled); anything else is `ps_l2` with its `cond`."""
     if lights.ndim != 2 or not cpu_top_level(images, lights, mask, sample_mask, thresholds):
         return ps_l2(images, lights, mask, sample_mask, thresholds)
     shared = host_constants(np.asarray(lights, np.float64))
-    weighted = bool(l2_needs_weights(images, mask, sample_mask, thresholds, shared))
     return ps_l2(images, lights, mask, sample_mask, thresholds, shared,
-                 branch="weighted" if weighted else "all_used")
+                 branch=l2_branch(images, mask, sample_mask, thresholds, shared))
 
 
-@functools.partial(jax.jit, static_argnames=("weighted", "dtype"))
-def l2_solve(images, lights, mask, sample_mask, thresholds, shared, *, weighted, dtype):
-    """`ps_l2` of one capture without its `cond`: the solve `weighted` chooses, flat.
+@functools.partial(jax.jit, static_argnames=("weighted", "dtype", "all_finite"))
+def l2_solve(images, lights, mask, sample_mask, thresholds, shared, *, weighted, dtype,
+             all_finite=False):
+    """`ps_l2` of one capture without its `cond`: the solve `weighted` chooses, flat
+    (`all_finite`: the weighted solve's form for captures with no non-finite sample).
 
     The batch's half of `ps_l2`: the branch is taken on the host (`l2_needs_weights`), and the
     results go into the stacked outputs by `l2_write` (or both in one program, `l2_into`).
@@ -347,7 +381,8 @@ def l2_solve(images, lights, mask, sample_mask, thresholds, shared, *, weighted,
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     if weighted:
-        res = _solve_weighted(images, lights.astype(images.dtype), mask, sample_mask, thresholds)
+        res = _solve_weighted(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
+                              all_finite=all_finite)
     else:
         res = _solve_all_used(images, mask, sample_mask, thresholds,
                               _cast_shared(shared, images.dtype))[:-1]

@@ -18,7 +18,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._host import OLDER_EMITTERS, cpu_top_level, to_device
 from ..lights._directions import validate_lights
-from ._l2 import PSResult, host_constants, l2_needs_weights
+from ._l2 import PSResult, host_constants, l2_branch
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
 
@@ -159,9 +159,7 @@ def photometric_stereo(
             images = to_device(images)
             mask, sample_mask = (None if m is None else to_device(m, bool)
                                  for m in (mask, sample_mask))
-            weighted = bool(l2_needs_weights(images, mask, sample_mask, thresholds,
-                                             dynamic["shared"]))
-            branch = "weighted" if weighted else "all_used"
+            branch = l2_branch(images, mask, sample_mask, thresholds, dynamic["shared"])
             options = {**options, "branch": branch}
     static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
     try:
