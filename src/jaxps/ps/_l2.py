@@ -77,6 +77,9 @@ def _samples(x, usable, thresholds, all_finite=False):
     if all_finite:
         unsat = [usable[k] & ~_any([v >= saturation for v in x[k]]) for k in ks]
         used = [unsat[k] & (g[k] >= shadow) for k in ks]
+        if len(ks) <= 31:  # one int32 plane of "used" bits, not K bool planes in memory
+            bits = sum(u.astype(jnp.int32) << k for k, u in zip(ks, used))
+            used = [(bits >> k) & 1 == 1 for k in ks]
         cases = [
             (functools.reduce(jnp.maximum, g) <= dark, Status.DARK),
             (_count(unsat) < 3, Status.SATURATED),
