@@ -102,6 +102,8 @@ def _rows(k, surface, repeats):
         "weighted (5% dropped), flat planes reshaped": flat(True),
         "every sample finite? (asked when weighted)": lambda: _l2.l2_all_finite(images),
         "weighted, every sample finite (5% dropped)": run_branch("weighted_finite", dropped),
+        "weighted, every sample finite (5% dropped), older emitters": run_branch(
+            "weighted_finite", dropped, OLDER_EMITTERS),
         "both branches in a cond, clean": run_branch(None, clean),
         "both branches in a cond, 5% dropped": run_branch(None, dropped),
     }
