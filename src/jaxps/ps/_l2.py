@@ -68,9 +68,10 @@ def _samples(x, usable, thresholds, all_finite=False):
 
     `all_finite`: the caller has checked that every sample is finite (`l2_all_finite`), so
     nothing is zeroed and `INVALID` cannot occur. XLA-CPU wrote each zeroed sample to memory
-    as its own plane, read again by every output's pass; without them the weighted solve at
-    1 MP took 22-25 against 53-56 ms at K=12 and 15 against 20-22 ms at K=5, bit-identical
-    (`benchmarks/bench_l2_programs.py`)."""
+    as its own plane, read again by every output's pass (and the "used" flags as K bool
+    planes, now one bit plane). At 1 MP with 5% of the samples dropped the weighted solve took
+    21.6-25.9 against 50.8-53.2 ms at K=12 and 11.4-15.9 against 24.9-26.6 ms at K=5, results
+    bit-identical (`benchmarks/bench_l2_programs.py`, four runs; the check adds 1.0-2.7 ms)."""
     dark, saturation, shadow = thresholds
     ks = range(len(x))
     g = [_grey(xk) for xk in x]
@@ -346,8 +347,8 @@ def l2_all_finite(images):
     """Whether every sample of `images` is finite: asked only once `l2_needs_weights` has
     chosen the weighted solve, whose `all_finite` form then zeroes nothing. One test per pixel,
     of the sum of its samples (unrolled over K, as in `_pixel_all_used`): a sum that overflows
-    only sends the capture to the zeroing form. `jnp.all(jnp.isfinite(images))` took 11 ms at
-    K=12, 1 MP (`benchmarks/bench_l2_programs.py`)."""
+    only sends the capture to the zeroing form. `jnp.all(jnp.isfinite(images))` took 11.2 ms
+    at K=12, 1 MP, in `benchmarks/bench_l2_programs.py` at commit d35f63f; this, 1.9-2.7 ms."""
     total = sum(images[k] for k in range(images.shape[0]))
     return jnp.all(jnp.isfinite(total))
 
