@@ -6,10 +6,9 @@ wrapper's `_run`). This times, at 1280x1024 for K = 5 and 12, each of those prog
 XLA-CPU's default emitters and with the older ones (`OLDER_EMITTERS`), the solve that
 `photometric_stereo` used before (the `cond` over both branches, what a traced call still
 compiles), and the layout choice of the split solves: `(H, W)` planes (kept) against the
-`cond` branches' flat `(H*W,)` planes reshaped to `(H, W)` at the end; also the check that
-every sample is finite (`l2_all_finite`), asked once the weighted solve is chosen, and the
-weighted solve's form for such captures (`branch="weighted_finite"`, which zeroes no
-sample). Compile time is the
+`cond` branches' flat `(H*W,)` planes reshaped to `(H, W)` at the end; also the weighted
+solve's form for captures whose samples are all finite (`branch="weighted_finite"`, which
+zeroes no sample; the flag pass says which form). Compile time is the
 first call minus the median of the later ones, with JAX's in-memory caches cleared before each
 program (and no persistent cache: this script does not turn one on).
 
@@ -100,7 +99,6 @@ def _rows(k, surface, repeats):
         "weighted (5% dropped), older emitters": run_branch("weighted", dropped,
                                                              OLDER_EMITTERS),
         "weighted (5% dropped), flat planes reshaped": flat(True),
-        "every sample finite? (asked when weighted)": lambda: _l2.l2_all_finite(images),
         "weighted, every sample finite (5% dropped)": run_branch("weighted_finite", dropped),
         "weighted, every sample finite (5% dropped), older emitters": run_branch(
             "weighted_finite", dropped, OLDER_EMITTERS),

@@ -164,8 +164,8 @@ def test_per_pixel_lights_match_shared():
     np.testing.assert_array_equal(per_pixel.status, shared.status)
 
 
-@pytest.mark.parametrize("case", ["clean", "dropped", "dropped_finite", "colour_dropped",
-                                  "colour", "sample_mask", "uint8_mask"])
+@pytest.mark.parametrize("case", ["clean", "dropped", "dropped_finite", "nan_outside_mask",
+                                  "colour_dropped", "colour", "sample_mask", "uint8_mask"])
 def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
     # A top-level call on the CPU picks L2's solve on the host and compiles only that one; a
     # call inside a jit takes the `cond` in the program. Both must give the same result.
@@ -174,11 +174,14 @@ def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
 
     s = face_scene(40)
     images, options = np.array(s.images), {"mask": np.asarray(s.mask)}
-    if case in ("dropped", "dropped_finite", "colour_dropped"):
+    if case in ("dropped", "dropped_finite", "nan_outside_mask", "colour_dropped"):
         images[1, :12] = 1.0  # saturated
         options["shadow_threshold"] = 0.02
     if case == "dropped":
         images[3][np.random.default_rng(2).uniform(size=images[3].shape) < 0.05] = np.nan
+    if case == "nan_outside_mask":  # the solve without zeroing: status codes hide the NaNs
+        assert not np.asarray(s.mask).all()
+        images[3][~np.asarray(s.mask)] = np.nan
     if case == "colour_dropped":
         images = images[..., None] * np.array([1.0, 0.7, 0.4], np.float32)
         images[2, 20:, :5, 1] = 1.0  # one channel saturated
@@ -199,9 +202,11 @@ def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
     for a, b in zip(host[:5], traced[:5]):
         assert a.shape == b.shape and a.dtype == b.dtype
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
-    dropping = case in ("dropped", "dropped_finite", "colour_dropped", "sample_mask")
+    dropping = case in ("dropped", "dropped_finite", "nan_outside_mask", "colour_dropped",
+                        "sample_mask")
     assert (np.asarray(host.n_used)[np.asarray(s.mask)] < len(images)).any() == dropping
     expected = {"dropped": "weighted", "dropped_finite": "weighted_finite",
+                "nan_outside_mask": "weighted_finite",
                 "colour_dropped": "weighted_finite", "sample_mask": "weighted_finite"}
     assert branches == [expected.get(case, "all_used")]
 
@@ -317,7 +322,8 @@ def test_eager_solvers_take_the_l2_branch_on_the_host(case, monkeypatch):
     monkeypatch.setattr(_l2, "l2_needs_weights", lambda *a: flags.append(needs(*a)) or flags[-1])
     host = _l2.ps_l2_eager(images, lights, mask, None, thresholds)
     traced = _l2.ps_l2(images, lights, mask, None, thresholds)
-    assert [bool(f) for f in flags] == [case == "dropped"]  # one flag, read on the host
+    # one read of the flags on the host: bit 0 weighted, bit 1 a NaN inside the mask
+    assert [int(f) for f in flags] == [3 if case == "dropped" else 0]
     np.testing.assert_array_equal(host.status, traced.status)
     np.testing.assert_array_equal(host.n_used, traced.n_used)
     for a, b in zip(host[:5], traced[:5]):

@@ -24,8 +24,8 @@ from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["INTO_MAX_PLANES", "PSResult", "host_constants", "l2_all_finite", "l2_branch",
-           "l2_into", "l2_needs_weights", "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
+__all__ = ["INTO_MAX_PLANES", "PSResult", "host_constants", "l2_branch", "l2_into",
+           "l2_needs_weights", "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
 
 
 class PSResult(NamedTuple):
@@ -66,12 +66,12 @@ def _samples(x, usable, thresholds, all_finite=False):
     grey values `g`, and the per-sample flags finite / unsaturated (and usable) / used (also
     above the shadow threshold). Also the status cases they decide, in `first_status` order.
 
-    `all_finite`: the caller has checked that every sample is finite (`l2_all_finite`), so
+    `all_finite`: the caller has checked that every sample is finite (`l2_branch`), so
     nothing is zeroed and `INVALID` cannot occur. XLA-CPU wrote each zeroed sample to memory
     as its own plane, read again by every output's pass (and the "used" flags as K bool
     planes, now one bit plane). At 1 MP with 5% of the samples dropped the weighted solve took
     21.6-25.9 against 50.8-53.2 ms at K=12 and 11.4-15.9 against 24.9-26.6 ms at K=5, results
-    bit-identical (`benchmarks/bench_l2_programs.py`, four runs; the check adds 1.0-2.7 ms)."""
+    bit-identical (`benchmarks/bench_l2_programs.py`, four runs)."""
     dark, saturation, shadow = thresholds
     ks = range(len(x))
     g = [_grey(xk) for xk in x]
@@ -127,15 +127,17 @@ def _pixel_all_used(x, usable, inside, shared, thresholds):
     `x` is a list of K samples, each a list of C channel scalars; `usable` K bools; `shared`
     = (lights, pinv, null, gram, full_rank) computed once per image. The squared misfit is
     $\\|N i\\|^2$ with the rows of `null` spanning the complement of the light columns: exact,
-    and cheaper than recomputing $i - L b$. Returns the outputs of `_finish` and a flag that is
-    true when the assumption fails (a sample non-finite, saturated, shadowed or not usable), in
-    which case the pixel must be solved by `_pixel_weighted`.
+    and cheaper than recomputing $i - L b$. Returns the outputs of `_finish` and an int32 of
+    flags, 0 outside the mask: bit 0 set when the assumption fails (a sample non-finite,
+    saturated, shadowed or not usable), in which case the pixel must be solved by
+    `_pixel_weighted`; bit 1 set when a sample is not finite.
     """
     dark, saturation, shadow = thresholds
     lights, pinv, null, gram, full_rank = shared
     ks = range(len(x))
     g = [_grey(xk) for xk in x]
-    clean = (jnp.isfinite(sum(g))  # one test: a NaN or Inf in any sample makes the sum so
+    finite = jnp.isfinite(sum(g))  # one test: a NaN or Inf in any sample makes the sum so
+    clean = (finite
              & functools.reduce(jnp.logical_and, usable)
              & ~_any([v >= saturation for xk in x for v in xk])
              & ~_any([v < shadow for v in g]))
@@ -152,7 +154,10 @@ def _pixel_all_used(x, usable, inside, shared, thresholds):
     cases = [(brightest <= dark, Status.DARK), (~full_rank, Status.DEGENERATE)]
     out = _finish(b, sq, jnp.int32(len(x)), cases, inside,
                   None if len(x[0]) == 1 else colour_albedo)
-    return *out, inside & ~clean
+    # the host's flags for this pixel: bit 0, solve it by `_pixel_weighted`; bit 1, a sample
+    # is not finite (then that solve must zero it: `_samples`)
+    flags = (~clean).astype(jnp.int32) | (~finite).astype(jnp.int32) << 1
+    return *out, jnp.where(inside, flags, 0)
 
 
 def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
@@ -280,7 +285,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     copied into the `cond` below); `shared`: `host_constants(lights)` or None (computed here,
     differentiably); `branch`: None (decided in the program, by the `cond` below), or the
     solve already chosen on the host with `l2_needs_weights`: `"all_used"` or `"weighted"`,
-    or `"weighted_finite"` when `l2_all_finite` has also found every sample finite
+    or `"weighted_finite"` when it has also found every sample inside the mask finite
     (`photometric_stereo` does so for a top-level call on the CPU, so that only the branch it
     runs is traced and compiled).
 
@@ -316,7 +321,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
         # a per-pixel merge made XLA-CPU fuse the weighted solve into every output.
         needs = _solve_all_used(images, mask, sample_mask, thresholds, shared)[-1]
         out = jax.lax.cond(
-            jnp.any(needs),
+            jnp.any(needs & 1 == 1),
             lambda *a: _stacked(_solve_weighted(*a)),
             lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared)[:-1]),
             images, lights, mask, sample_mask, thresholds)
@@ -329,36 +334,30 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
 
 @jax.jit
 def l2_needs_weights(images, mask, sample_mask, thresholds, shared):
-    """Whether any pixel in `mask` must be solved by `_pixel_weighted` (a sample non-finite,
-    saturated, shadowed or not in `sample_mask`): `ps_l2`'s branch, taken on the host.
-    Arguments as in `l2_solve`; `mask` None is every pixel, and `thresholds` are cast to the
-    images' dtype here."""
+    """The flag pass of `ps_l2`'s branch, taken on the host: an int32 whose bit 0 says that
+    some pixel in `mask` must be solved by `_pixel_weighted` (a sample non-finite, saturated,
+    shadowed or not in `sample_mask`) and bit 1 that some pixel in `mask` has a non-finite
+    sample (one test of the sum of its samples: a sum that overflows counts as non-finite).
+    One reduction over the pixels' flags, as cheap as a single bool. Arguments as in
+    `l2_solve`; `mask` None is every pixel, and `thresholds` are cast to the images' dtype
+    here."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     if mask is None:
         mask = jnp.ones(images.shape[1:3], bool)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
     shared = _cast_shared(shared, images.dtype)
-    return jnp.any(_solve_all_used(images, mask, sample_mask, thresholds, shared)[-1])
-
-
-@jax.jit
-def l2_all_finite(images):
-    """Whether every sample of `images` is finite: asked only once `l2_needs_weights` has
-    chosen the weighted solve, whose `all_finite` form then zeroes nothing. One test per pixel,
-    of the sum of its samples (unrolled over K, as in `_pixel_all_used`): a sum that overflows
-    only sends the capture to the zeroing form. `jnp.all(jnp.isfinite(images))` took 11.2 ms
-    at K=12, 1 MP, in `benchmarks/bench_l2_programs.py` at commit d35f63f; this, 1.9-2.7 ms."""
-    total = sum(images[k] for k in range(images.shape[0]))
-    return jnp.all(jnp.isfinite(total))
+    return jnp.max(_solve_all_used(images, mask, sample_mask, thresholds, shared)[-1])
 
 
 def l2_branch(images, mask, sample_mask, thresholds, shared) -> str:
-    """`ps_l2`'s `branch`, taken on the host: `"all_used"`, or `"weighted_finite"` /
-    `"weighted"` as every sample is finite or not. Waits for one flag (two when weighted)."""
-    if not bool(l2_needs_weights(images, mask, sample_mask, thresholds, shared)):
+    """`ps_l2`'s `branch`, taken on the host from one read of `l2_needs_weights`:
+    `"all_used"`, or `"weighted_finite"` / `"weighted"` as every sample inside the mask is
+    finite or not (outside it, the solve's status codes hide whatever a NaN computes)."""
+    flags = int(l2_needs_weights(images, mask, sample_mask, thresholds, shared))
+    if not flags & 1:
         return "all_used"
-    return "weighted_finite" if bool(l2_all_finite(images)) else "weighted"
+    return "weighted" if flags & 2 else "weighted_finite"
 
 
 def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:
@@ -379,7 +378,7 @@ def l2_solve(images, lights, mask, sample_mask, thresholds, shared, *, weighted,
     """`ps_l2` of one capture without its `cond`: the solve `weighted` chooses, flat
     (`all_finite`: the weighted solve's form for captures with no non-finite sample).
 
-    The batch's half of `ps_l2`: the branch is taken on the host (`l2_needs_weights`), and the
+    The batch's half of `ps_l2`: the branch is taken on the host (`l2_branch`), and the
     results go into the stacked outputs by `l2_write` (or both in one program, `l2_into`).
 
     `images` `(K, H, W)` or `(K, H, W, C)` (float16 is solved in float32); `shared`:
