@@ -284,8 +284,8 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     `sample_mask` `(K, H, W)` bool or None (every sample allowed: no mask planes are read, or
     copied into the `cond` below); `shared`: `host_constants(lights)` or None (computed here,
     differentiably); `branch`: None (decided in the program, by the `cond` below), or the
-    solve already chosen on the host with `l2_needs_weights`: `"all_used"` or `"weighted"`,
-    or `"weighted_finite"` when it has also found every sample inside the mask finite
+    solve already chosen on the host with `l2_branch`: `"all_used"` or `"weighted"`, or
+    `"weighted_finite"` when it has also found every sample inside the mask finite
     (`photometric_stereo` does so for a top-level call on the CPU, so that only the branch it
     runs is traced and compiled).
 

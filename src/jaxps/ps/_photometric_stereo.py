@@ -108,8 +108,8 @@ def photometric_stereo(
     n_used, residual), in the floating dtype of `images`.
 
     For `"l2"` with `(K, 3)` lights, a call on the CPU outside any `jit`/`grad`/`vmap` first
-    waits for one flag (does any pixel drop a sample?) and then compiles and runs only the
-    solve it needs; the solve itself is dispatched asynchronously as usual. Inside a trace the
+    waits for one read of its flags (does any pixel drop a sample? is any sample non-finite?)
+    and then compiles and runs only the solve it needs; the solve itself is dispatched asynchronously as usual. Inside a trace the
     choice is a `lax.cond` in the program (docs/photometric_stereo.md, "How it is built").
 
     **Raises:** `ValueError` for a wrong shape, dtype, method or light set (see
