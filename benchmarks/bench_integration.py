@@ -129,8 +129,8 @@ def default_emitters(on):
 
     saved = _integrate.bilateral, _integrate.lsq_midpoint
     if on:
-        _integrate.bilateral = saved[0].default_emitters
-        _integrate.lsq_midpoint = saved[1].default_emitters
+        _integrate.bilateral = saved[0].plain
+        _integrate.lsq_midpoint = saved[1].plain
     try:
         yield
     finally:

@@ -58,7 +58,46 @@ def cpu_top_level(*trees) -> bool:
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(trees))
 
 
-# XLA-CPU's older loop emitters, for the programs measured faster with them: the grid
-# integrators (many small CG fusions; `benchmarks/bench_integration.py`) and L2's
-# every-sample-used solve (`benchmarks/bench_l2_programs.py`); docs/speed.md.
+# XLA-CPU compile options, each for the programs measured faster with it (docs/speed.md):
+# - the older loop emitters: the grid integrators (many small CG fusions;
+#   `benchmarks/bench_integration.py`) and L2's every-sample-used solve
+#   (`benchmarks/bench_l2_programs.py`);
+# - no YNNPACK fusions (an empty list of fusion kinds): this JAX hands reductions, with the
+#   elementwise work that feeds them, to YNNPACK, which ran the iterative solvers' sums over
+#   the K samples slower than XLA's own loops (`benchmarks/bench_ynn.py`).
 OLDER_EMITTERS = {"xla_cpu_use_fusion_emitters": False}
+NO_YNN = {"xla_cpu_experimental_ynn_fusion_type": ""}
+
+
+class CpuTuned:
+    """`fun` jitted twice: plain, and with XLA-CPU `options` (`compiler_options`).
+
+    A call takes the tuned program when it is a top-level call on the CPU (`cpu_top_level`:
+    JAX takes compiler options on top-level jits only), else the plain one, which inside a
+    trace is inlined into the caller's program as usual. The options are experimental flags:
+    an XLA that does not know one (an older or newer JAX) rejects it when the tuned program
+    is first compiled, before anything has run, and from then on every call takes the plain
+    program. `jit`: `jax.jit` or `equinox.filter_jit`; `kwargs` go to both jits.
+    """
+
+    def __init__(self, fun, options, jit=None, **kwargs):
+        import functools
+
+        import jax
+
+        jit = jax.jit if jit is None else jit
+        self.plain = jit(fun, **kwargs)
+        self.tuned = jit(fun, compiler_options=options, **kwargs)
+        self.options = options
+        self.known = True  # False once this XLA has rejected an option
+        functools.update_wrapper(self, fun)
+
+    def __call__(self, *args, **kwargs):
+        if self.known and cpu_top_level(args, kwargs):
+            try:
+                return self.tuned(*args, **kwargs)
+            except Exception as error:  # XLA's error type differs between JAX versions
+                if "compile option" not in str(error):
+                    raise
+                self.known = False
+        return self.plain(*args, **kwargs)

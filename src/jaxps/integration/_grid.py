@@ -21,14 +21,13 @@ it, ~5x more work per level (tens of times slower in all in exploratory timings)
 
 from __future__ import annotations
 
-from functools import partial
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from ..core._host import OLDER_EMITTERS, cpu_top_level
+from ..core._host import OLDER_EMITTERS, CpuTuned
 
 __all__ = ["GridSolve", "bilateral", "edge_div", "laplacian", "lsq_midpoint", "pcg",
            "solve_laplacian"]
@@ -288,26 +287,6 @@ def _edges(valid):
     return eh, ev
 
 
-# XLA-CPU's older loop emitters for the grid solvers, whose CG steps are many small fusions
-# (the V-cycle's coarse levels, dot products): faster on every DiLiGenT object, with the same
-# steps and MADE (`bench_integration.py`'s "default emitters" rows; docs/integration.md,
-# "Measured on DiLiGenT").
-def _with_cpu_options(jitted, static_argnames):
-    """`jitted`, called through a second jit of the same function compiled with `OLDER_EMITTERS`
-    when the call is a top-level one on the CPU (`cpu_top_level`)."""
-    cpu = jax.jit(jitted.__wrapped__, static_argnames=static_argnames,
-                  compiler_options=OLDER_EMITTERS)
-
-    def call(*args, **kwargs):
-        return (cpu if cpu_top_level(args, kwargs) else jitted)(*args, **kwargs)
-
-    call.__wrapped__, call.__doc__, call.__name__ = jitted.__wrapped__, jitted.__doc__, \
-        jitted.__wrapped__.__name__
-    call.default_emitters = jitted  # for benchmarks/bench_integration.py's comparison rows
-    return call
-
-
-@partial(jax.jit, static_argnames=("max_steps", "preconditioner"))
 def lsq_midpoint(gc, gr, valid, *, rtol, max_steps, preconditioner="multigrid"):
     """Masked least squares: $\\min_z \\sum_{e=(i,j)} (z_j - z_i - (g_i + g_j)/2)^2$ over the
     edges with both ends in `valid`.
@@ -327,7 +306,6 @@ def lsq_midpoint(gc, gr, valid, *, rtol, max_steps, preconditioner="multigrid"):
     return GridSolve(z, jnp.asarray(1), steps, ok)
 
 
-@partial(jax.jit, static_argnames=("max_steps", "cg_max_steps", "preconditioner"))
 def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps,
               preconditioner="multigrid"):
     """Bilateral normal integration (Cao, Shi, Nakaya, Li, Shi, "Bilateral Normal Integration",
@@ -432,5 +410,11 @@ def bilateral(mu, mv, bu, bv, valid, *, k, tol, cg_rtol, max_steps, cg_max_steps
     return GridSolve(z, i, n_cg + n, converged & ok)
 
 
-lsq_midpoint = _with_cpu_options(lsq_midpoint, ("max_steps", "preconditioner"))
-bilateral = _with_cpu_options(bilateral, ("max_steps", "cg_max_steps", "preconditioner"))
+# XLA-CPU's older loop emitters for the grid solvers, whose CG steps are many small fusions
+# (the V-cycle's coarse levels, dot products): faster on every DiLiGenT object, with the same
+# steps and MADE (`bench_integration.py`'s "default emitters" rows, which call `.plain`;
+# docs/integration.md, "Measured on DiLiGenT").
+lsq_midpoint = CpuTuned(lsq_midpoint, OLDER_EMITTERS,
+                        static_argnames=("max_steps", "preconditioner"))
+bilateral = CpuTuned(bilateral, OLDER_EMITTERS,
+                     static_argnames=("max_steps", "cg_max_steps", "preconditioner"))

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ..core._host import OLDER_EMITTERS, cpu_top_level, to_device
+from ..core._host import NO_YNN, OLDER_EMITTERS, CpuTuned, cpu_top_level, to_device
 from ..lights._directions import validate_lights
 from ._l2 import PSResult, host_constants, l2_branch
 
@@ -171,6 +171,8 @@ def photometric_stereo(
         images = to_device(images)  # the eager solvers take device arrays
     elif branch == "all_used":
         run = _run_older_emitters
+    elif method in _NO_YNN_METHODS:
+        run = _run_no_ynn
     return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
                static=static)
 
@@ -216,5 +218,10 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
 # 7.2-8.3 against 10.3-10.8 ms at 1 MP, K=5, in three runs of
 # `benchmarks/bench_l2_programs.py`. The flag pass and the weighted solve were no faster with
 # them (the weighted one slower), so they keep the default.
-_run_older_emitters = jax.jit(_run.__wrapped__, static_argnames=("method", "static"),
-                              compiler_options=OLDER_EMITTERS)
+_run_older_emitters = CpuTuned(_run.__wrapped__, OLDER_EMITTERS,
+                               static_argnames=("method", "static"))
+# The iterative robust solvers, whose steps sum over each pixel's K samples, without YNNPACK
+# fusions (`core._host.NO_YNN`; `benchmarks/bench_ynn.py`). `"l1"` (no iterations) was
+# slower without them.
+_NO_YNN_METHODS = frozenset({"irls", "barsky", "sbl"})
+_run_no_ynn = CpuTuned(_run.__wrapped__, NO_YNN, static_argnames=("method", "static"))

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
-from ..core._host import cpu_top_level
+from ..core._host import NO_YNN, CpuTuned, cpu_top_level
 from ..core._linalg import REL_DET_MIN, solve3
 from ._l2 import PSResult, ps_l2_eager
 
@@ -99,7 +99,6 @@ def _objective(x, args):
     return jnp.sum(r * r)
 
 
-@eqx.filter_jit
 def _fit_intensities(images, lights, mask, sample_mask, thresholds, stride, solver, max_steps,
                      prior_weight):
     sub = images[:, ::stride, ::stride]
@@ -128,6 +127,11 @@ def _fit_intensities(images, lights, mask, sample_mask, thresholds, stride, solv
     e = jnp.where(usable, e, e0)
     costs = jnp.stack([start_cost, jnp.where(usable, end_cost, start_cost)])
     return e, e0, converged, ~usable | ~have_common, sol.stats["num_steps"], costs
+
+
+# Without YNNPACK fusions (`core._host.NO_YNN`): the LM steps' sums over the K frames ran
+# faster in XLA's own loops (`benchmarks/bench_ynn.py`).
+_fit_intensities = CpuTuned(_fit_intensities, NO_YNN, jit=eqx.filter_jit)
 
 
 def _default_solver(dtype) -> optx.LevenbergMarquardt:

@@ -77,7 +77,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
-from ..core._host import cpu_top_level
+from ..core._host import CpuTuned
 from ..core._random import as_key
 from . import _parametric
 from ._auto import fit_auto, lolo_folds
@@ -744,8 +744,7 @@ def _relight_jit(model, normals, albedo, lights):
     their width. JAX accepts compiler options on top-level jits only, so inside `jit`/`grad`
     the plain kernel is traced; other backends take it too (the option is XLA-CPU's).
     """
-    wide = cpu_top_level(model, normals, albedo, lights)
-    return (_relight_wide if wide else _relight_kernel)(model, normals, albedo, lights)
+    return _relight_wide(model, normals, albedo, lights)
 
 
 _WIDE_VECTORS = {"xla_cpu_prefer_vector_width": 512}
@@ -788,7 +787,7 @@ def _relight_kernel(model, normals, albedo, lights):
     return jnp.broadcast_to(out, (k, h * w)).reshape(k, h, w)
 
 
-_relight_wide = eqx.filter_jit(_relight_kernel.__wrapped__, compiler_options=_WIDE_VECTORS)
+_relight_wide = CpuTuned(_relight_kernel.__wrapped__, _WIDE_VECTORS, jit=eqx.filter_jit)
 
 
 def _mlp_elementwise(params, rows):

@@ -60,6 +60,7 @@ import numpy as np
 import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
+from ..core._host import NO_YNN, CpuTuned
 from ..shading._oren_nayar import SIGMA_MAX, _shading
 
 __all__ = ["PARAMETRIC_METHODS"]
@@ -366,7 +367,6 @@ def _refine(p, data, diffuse, specular, n_regions, fit_gains, steps=8):
 _refine_jit = jax.jit(_refine, static_argnames=("diffuse", "specular", "n_regions", "fit_gains"))
 
 
-@eqx.filter_jit
 def _solve(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps):
     def residuals(p, data):
         w = data[3]
@@ -376,6 +376,9 @@ def _solve(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps)
     return optx.least_squares(residuals, solver, p0, args=data, max_steps=max_steps, throw=False)
 
 
+# Without YNNPACK fusions (`core._host.NO_YNN`): each LM step's sums over the K frames ran
+# faster in XLA's own loops (`benchmarks/bench_ynn.py`).
+_solve = CpuTuned(_solve, NO_YNN, jit=eqx.filter_jit)
 _predict_jit = jax.jit(_predict, static_argnames=("diffuse", "specular", "n_regions",
                                                    "fit_gains"))
 
