@@ -50,6 +50,7 @@ parametric part with the gains fixed (the issue's "MLP that learns only the resi
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -383,7 +384,7 @@ _predict_jit = jax.jit(_predict, static_argnames=("diffuse", "specular", "n_regi
                                                    "fit_gains"))
 
 
-@jax.jit(static_argnames="method")
+@functools.partial(jax.jit, static_argnames="method")
 def render(method, params, normals, albedo, lights):
     """`(K, H, W)` images of a fitted parametric `method` at unit frame gains."""
     diffuse, specular = PARAMETRIC_METHODS[method]

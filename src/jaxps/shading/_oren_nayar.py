@@ -31,6 +31,7 @@ is projected onto $[0, \\sigma_{max}^2]$; a value that lands on a bound is repor
 
 from __future__ import annotations
 
+import functools
 from typing import NamedTuple
 
 import equinox as eqx
@@ -193,7 +194,7 @@ def render_oren_nayar(
     return _render(normals, albedo, lights, sigma, form)
 
 
-@jax.jit(static_argnames="form")
+@functools.partial(jax.jit, static_argnames="form")
 def _render(normals, albedo, lights, sigma, form):
     cos_i, cos_r, p = _geometry(normals, lights)
     s = jnp.broadcast_to(sigma**2, albedo.shape)
