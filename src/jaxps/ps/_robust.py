@@ -179,21 +179,36 @@ def _pixel_barsky(i, usable, lights, thresholds, threshold, max_drop):
 # Iteratively reweighted least squares (L1 as in Ikehata et al. 2012's L1 solver, or Huber).
 
 
-def _pixel_irls(i, usable, lights, thresholds, loss, delta, eps, rtol, max_steps, outlier):
-    i, grey_in, finite, unsat, used = _prepare(i, usable, thresholds)
-    lights_in = lights
-    grey, lights, scale = _loop_inputs(grey_in, lights, used)
-    dtype = i.dtype
-    w0 = used.astype(dtype)
-    b0, _, _ = _weighted_solve(w0, lights, grey)
+def _irls_loop(g, used, lt, *, loss, delta, eps, rtol, max_steps):
+    """The reweighting loop of one pixel, on scalars: `g` K grey samples, `used` K flags, `lt`
+    K lights `[lx, ly, lz]`. Starts from the least-squares solution; each step solves the 3x3
+    weighted normal equations by cofactors. Returns the final weights (K), the steps taken and
+    whether it converged.
+
+    Written on K scalars rather than `(K,)` vectors: lifted by `vmap`, each is a plane of
+    pixels and every step is elementwise work that XLA-CPU fuses and vectorises, where the
+    sums over a `(pixels, K)` block were slow (`benchmarks/bench_robust.py`, docs/robust.md).
+    """
+    ks = range(len(g))
+    dtype = g[0].dtype
+    count = sum(u.astype(dtype) for u in used)
+    mean_used = sum(jnp.where(u, v, 0) for u, v in zip(used, g)) / jnp.maximum(count, 1)
+    scale = jnp.maximum(mean_used, jnp.finfo(dtype).tiny)
+    floor = eps * scale
+
+    def solve(w):
+        wl = [[w[j] * lt[j][p] for p in range(3)] for j in ks]
+        a = [[sum(wl[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
+        b, rel_det = solve3(a, [sum(wl[j][p] * g[j] for j in ks) for p in range(3)])
+        return [b[0], b[1], b[2]], rel_det
 
     def weights(b):
-        r = jnp.abs(grey - lights @ b)
+        r = [jnp.abs(g[j] - sum(lt[j][p] * b[p] for p in range(3))) for j in ks]
         if loss == "l1":
-            w = 1 / jnp.maximum(r, eps * scale)
+            w = [1 / jnp.maximum(rj, floor) for rj in r]
         else:
-            w = jnp.minimum(1, delta * scale / jnp.maximum(r, eps * scale))
-        return jnp.where(used, w, 0)
+            w = [jnp.minimum(1, delta * scale / jnp.maximum(rj, floor)) for rj in r]
+        return [jnp.where(u, wj, 0) for u, wj in zip(used, w)]
 
     def cond(state):
         _, step, done = state
@@ -201,15 +216,64 @@ def _pixel_irls(i, usable, lights, thresholds, loss, delta, eps, rtol, max_steps
 
     def body(state):
         b, step, _ = state
-        b_new, _, rel_det = _weighted_solve(weights(b), lights, grey)
-        b_new = jnp.where(jnp.all(jnp.isfinite(b_new)) & (rel_det > 0), b_new, b)
-        done = jnp.linalg.norm(b_new - b) <= rtol * jnp.maximum(jnp.linalg.norm(b_new), scale)
-        return b_new, step + 1, done
+        b_new, rel_det = solve(weights(b))
+        ok = jnp.isfinite(b_new[0]) & jnp.isfinite(b_new[1]) & jnp.isfinite(b_new[2])
+        b_new = [jnp.where(ok & (rel_det > 0), v, u) for v, u in zip(b_new, b)]
+        moved = safe_sqrt(sum((v - u) ** 2 for v, u in zip(b_new, b)))
+        size = safe_sqrt(sum(v * v for v in b_new))
+        return b_new, step + 1, moved <= rtol * jnp.maximum(size, scale)
 
+    b0, _ = solve([u.astype(dtype) for u in used])
     b, steps, done = jax.lax.while_loop(cond, body, (b0, jnp.array(0, jnp.int32),
                                                      jnp.array(False)))
-    return _finish(i, grey_in, finite, unsat, used, weights(b), lights_in, thresholds, outlier,
-                   steps, done)
+    return weights(b), steps, done
+
+
+def _loop_planes(images, lights, mask, sample_mask, thresholds):
+    """The reweighting loop's inputs as flat `(H*W,)` planes: K grey samples, K used flags
+    (as `_prepare` sorts them) and K lights (shared: scalars; per pixel: unit planes), all held
+    constant for reverse mode (see `_loop_inputs`)."""
+    k, h, w, c = images.shape
+    _, saturation, shadow = thresholds
+    x = jax.lax.stop_gradient(images).reshape(k, h * w, c)
+    usable = (sample_mask & mask[None]).reshape(k, h * w)
+    grey, used = [], []
+    for j in range(k):
+        ch = [x[j, :, q] for q in range(c)]
+        finite = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in ch])
+        ch = [jnp.where(finite, v, 0) for v in ch]
+        g = sum(ch) / c
+        lit = ~functools.reduce(jnp.logical_or, [v >= saturation for v in ch])
+        grey.append(g)
+        used.append(finite & lit & usable[j] & (g >= shadow))
+    lights = jax.lax.stop_gradient(lights)
+    if lights.ndim == 2:
+        lt = [[lights[j, p] for p in range(3)] for j in range(k)]
+    else:
+        lights = lights.reshape(k, h * w, 3)
+        lights = lights / jnp.maximum(jnp.linalg.norm(lights, axis=-1, keepdims=True),
+                                      jnp.finfo(images.dtype).tiny)
+        lt = [[lights[j, :, p] for p in range(3)] for j in range(k)]
+    return grey, used, lt
+
+
+def _map_chunks(fn, planes, n):
+    """`fn` (a kernel on scalars, lifted by `vmap`) over `(n,)` planes (a pytree of them) in
+    `lax.map` chunks of `_CHUNK` pixels: a vmapped `while_loop` runs every lane until the
+    slowest converges, so one slow pixel holds back only its own chunk."""
+    batched = jax.vmap(fn)
+    if n <= _CHUNK:
+        return batched(planes)
+    n_chunks = -(-n // _CHUNK)
+    pad = n_chunks * _CHUNK - n
+    chunks = jax.tree.map(lambda a: jnp.pad(a, (0, pad)).reshape(n_chunks, _CHUNK), planes)
+    outs = jax.lax.map(batched, chunks)
+    return jax.tree.map(lambda a: a.reshape(n_chunks * _CHUNK)[:n], outs)
+
+
+def _pixel_irls_finish(i, usable, lights, thresholds, w, steps, done, outlier):
+    i, grey, finite, unsat, used = _prepare(i, usable, thresholds)
+    return _finish(i, grey, finite, unsat, used, w, lights, thresholds, outlier, steps, done)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -258,7 +322,9 @@ def _pixel_sbl(i, usable, lights, thresholds, lambda1, lambda2, gamma_min, rtol,
 # Lifting a one-pixel kernel over the image (same layout handling as `ps_l2`).
 
 
-def _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=True):
+def _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=True, extra=()):
+    """`kernel(i, usable, lights, thresholds, *extra)` over every pixel; `extra`: per-pixel
+    inputs with the pixel axis last (`(..., H*W)`), for a kernel that is not `iterative`."""
     k, h, w, c = images.shape
     flat = images.reshape(k, h * w, c)
     # Masked pixels get no usable sample, so the iterative kernels stop at once there.
@@ -270,7 +336,7 @@ def _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=True)
         lights = lights / jnp.maximum(jnp.linalg.norm(lights, axis=-1, keepdims=True),
                                       jnp.finfo(images.dtype).tiny)
         light_axis = 1
-    batched = jax.vmap(kernel, in_axes=(1, 1, light_axis, None))
+    batched = jax.vmap(kernel, in_axes=(1, 1, light_axis, None) + (-1,) * len(extra))
     if iterative and h * w > _CHUNK:
         # A vmapped while_loop runs every lane until the slowest converges: solve in chunks
         # (lax.map) so one slow pixel holds back only its own chunk.
@@ -292,7 +358,8 @@ def _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=True)
         outs = [o.reshape((n_chunks * _CHUNK,) + o.shape[2:])[: h * w] for o in outs]
         n, rho, status, n_used, residual, steps = outs
     else:
-        n, rho, status, n_used, residual, steps = batched(flat, usable, lights, thresholds)
+        n, rho, status, n_used, residual, steps = batched(flat, usable, lights, thresholds,
+                                                          *extra)
     m = mask.reshape(-1)
     keep = m & (status == Status.OK)
     status = jnp.where(m, status, Status.MASKED).astype(jnp.int32)
@@ -370,10 +437,19 @@ def ps_irls(images, lights, mask, sample_mask, thresholds, *, loss: str = "l1",
 def _ps_irls(images, lights, mask, sample_mask, thresholds, loss, delta, eps, rtol, max_steps,
              threshold):
     dt = images.dtype
-    kernel = functools.partial(
-        _pixel_irls, loss=loss, delta=jnp.asarray(delta, dt), eps=jnp.asarray(eps, dt),
-        rtol=jnp.asarray(rtol, dt), max_steps=max_steps, outlier=jnp.asarray(threshold, dt))
-    return _lift(kernel, images, lights, mask, sample_mask, thresholds)
+    h, w = images.shape[1:3]
+    grey, used, lt = _loop_planes(images, lights, mask, sample_mask, thresholds)
+    shared = lights.ndim == 2
+    loop = functools.partial(_irls_loop, loss=loss, delta=jnp.asarray(delta, dt),
+                             eps=jnp.asarray(eps, dt), rtol=jnp.asarray(rtol, dt),
+                             max_steps=max_steps)
+    if shared:  # the light scalars are closed over, not mapped
+        weights, steps, done = _map_chunks(lambda p: loop(p[0], p[1], lt), (grey, used), h * w)
+    else:
+        weights, steps, done = _map_chunks(lambda p: loop(*p), (grey, used, lt), h * w)
+    kernel = functools.partial(_pixel_irls_finish, outlier=jnp.asarray(threshold, dt))
+    return _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=False,
+                 extra=(jnp.stack(weights), steps, done))
 
 
 def ps_sbl(images, lights, mask, sample_mask, thresholds, *, lambda1: float = 100.0,
