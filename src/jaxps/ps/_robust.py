@@ -229,24 +229,26 @@ def _irls_loop(g, used, lt, *, loss, delta, eps, rtol, max_steps):
     return weights(b), steps, done
 
 
-def _loop_planes(images, lights, mask, sample_mask, thresholds):
-    """The reweighting loop's inputs as flat `(H*W,)` planes: K grey samples, K used flags
-    (as `_prepare` sorts them) and K lights (shared: scalars; per pixel: unit planes), all held
-    constant for reverse mode (see `_loop_inputs`)."""
+def _planes(images, lights, mask, sample_mask, thresholds):
+    """`_prepare` on flat `(H*W,)` planes: K lists of C samples (non-finite ones zeroed), K grey
+    samples, the K finite / unsaturated / used flags, and K lights `[lx, ly, lz]` (shared:
+    scalars; per pixel: unit planes)."""
     k, h, w, c = images.shape
     _, saturation, shadow = thresholds
-    x = jax.lax.stop_gradient(images).reshape(k, h * w, c)
+    flat = images.reshape(k, h * w, c)
     usable = (sample_mask & mask[None]).reshape(k, h * w)
-    grey, used = [], []
+    x, grey, finite, unsat, used = [], [], [], [], []
     for j in range(k):
-        ch = [x[j, :, q] for q in range(c)]
-        finite = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in ch])
-        ch = [jnp.where(finite, v, 0) for v in ch]
+        ch = [flat[j, :, q] for q in range(c)]
+        ok = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in ch])
+        ch = [jnp.where(ok, v, 0) for v in ch]
         g = sum(ch) / c
-        lit = ~functools.reduce(jnp.logical_or, [v >= saturation for v in ch])
+        lit = ok & ~functools.reduce(jnp.logical_or, [v >= saturation for v in ch]) & usable[j]
+        x.append(ch)
         grey.append(g)
-        used.append(finite & lit & usable[j] & (g >= shadow))
-    lights = jax.lax.stop_gradient(lights)
+        finite.append(ok)
+        unsat.append(lit)
+        used.append(lit & (g >= shadow))
     if lights.ndim == 2:
         lt = [[lights[j, p] for p in range(3)] for j in range(k)]
     else:
@@ -254,7 +256,7 @@ def _loop_planes(images, lights, mask, sample_mask, thresholds):
         lights = lights / jnp.maximum(jnp.linalg.norm(lights, axis=-1, keepdims=True),
                                       jnp.finfo(images.dtype).tiny)
         lt = [[lights[j, :, p] for p in range(3)] for j in range(k)]
-    return grey, used, lt
+    return x, grey, finite, unsat, used, lt
 
 
 def _map_chunks(fn, planes, n):
@@ -271,9 +273,60 @@ def _map_chunks(fn, planes, n):
     return jax.tree.map(lambda a: a.reshape(n_chunks * _CHUNK)[:n], outs)
 
 
-def _pixel_irls_finish(i, usable, lights, thresholds, w, steps, done, outlier):
-    i, grey, finite, unsat, used = _prepare(i, usable, thresholds)
-    return _finish(i, grey, finite, unsat, used, w, lights, thresholds, outlier, steps, done)
+def _count(flags):
+    return sum(f.astype(jnp.int32) for f in flags)
+
+
+def _finish_planes(x, grey, finite, unsat, used, w, lt, dark, outlier, converged):
+    """`_finish` on planes (the arguments of `_planes`, `w` K weight planes): the final
+    weighted solve, per-channel albedo, inlier residual and status of every pixel, as
+    elementwise work. Returns normals `(P, 3)`, albedo `(P, C)`, status, inliers, residual."""
+    ks = range(len(grey))
+    dtype = grey[0].dtype
+    w = [jnp.where(u & jnp.isfinite(v), v, 0) for u, v in zip(used, w)]
+    top = functools.reduce(jnp.maximum, w)
+    w = [v / jnp.where(top > 0, top, 1) for v in w]
+    wl = [[w[j] * lt[j][p] for p in range(3)] for j in ks]
+    a = [[sum(wl[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
+    n_ch = len(x[0])
+    r = [[sum(wl[j][p] * x[j][ch] for j in ks) for p in range(3)] for ch in range(n_ch)]
+    # the channel-mean solution (the solve is linear in its right-hand side)
+    b, rel_det_w = solve3(a, [sum(r[ch][p] for ch in range(n_ch)) / n_ch for p in range(3)])
+    rho_grey = safe_sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
+    n = [b[p] / jnp.where(rho_grey > 0, rho_grey, 1) for p in range(3)]
+    nan_ = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
+    rho = [safe_divide(sum(n[p] * r[ch][p] for p in range(3)), nan_) for ch in range(n_ch)]
+    rho_mean = sum(rho) / n_ch
+    res = [grey[j] - rho_mean * sum(lt[j][p] * n[p] for p in range(3)) for j in ks]
+    count = _count(used)
+    scale = sum(jnp.where(u, g, 0) for u, g in zip(used, grey)) / jnp.maximum(count, 1).astype(
+        dtype)
+    inlier = [u & (jnp.abs(e) <= outlier * scale) for u, e in zip(used, res)]
+    n_in = _count(inlier)
+    residual = safe_sqrt(sum(jnp.where(i, e**2, 0) for i, e in zip(inlier, res))
+                         / jnp.maximum(n_in, 1).astype(dtype))
+    # whether the usable lights span 3-D at all (unweighted), and whether the weighted fit does
+    uw = [u.astype(dtype) for u in used]
+    a_used = [[sum(uw[j] * lt[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
+    _, rel_det_used = solve3(a_used, [jnp.zeros_like(grey[0])] * 3)
+    brightest = functools.reduce(jnp.maximum, [jnp.where(f, g, -jnp.inf)
+                                               for f, g in zip(finite, grey)])
+    status = jnp.select(
+        [
+            _count(finite) < 3,
+            brightest <= dark,
+            _count(unsat) < 3,
+            count < 3,
+            (rel_det_used < REL_DET_MIN) | ~(rel_det_w > 0),
+            ~(rho_grey > 0),
+            n[2] < 0,
+            ~converged,
+        ],
+        [Status.INVALID, Status.DARK, Status.SATURATED, Status.TOO_FEW_LIGHTS,
+         Status.DEGENERATE, Status.DARK, Status.BACKFACING, Status.NOT_CONVERGED],
+        Status.OK,
+    )
+    return jnp.stack(n, -1), jnp.stack(rho, -1), status, n_in, residual
 
 
 # ----------------------------------------------------------------------------------------------
@@ -322,9 +375,7 @@ def _pixel_sbl(i, usable, lights, thresholds, lambda1, lambda2, gamma_min, rtol,
 # Lifting a one-pixel kernel over the image (same layout handling as `ps_l2`).
 
 
-def _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=True, extra=()):
-    """`kernel(i, usable, lights, thresholds, *extra)` over every pixel; `extra`: per-pixel
-    inputs with the pixel axis last (`(..., H*W)`), for a kernel that is not `iterative`."""
+def _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=True):
     k, h, w, c = images.shape
     flat = images.reshape(k, h * w, c)
     # Masked pixels get no usable sample, so the iterative kernels stop at once there.
@@ -336,7 +387,7 @@ def _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=True,
         lights = lights / jnp.maximum(jnp.linalg.norm(lights, axis=-1, keepdims=True),
                                       jnp.finfo(images.dtype).tiny)
         light_axis = 1
-    batched = jax.vmap(kernel, in_axes=(1, 1, light_axis, None) + (-1,) * len(extra))
+    batched = jax.vmap(kernel, in_axes=(1, 1, light_axis, None))
     if iterative and h * w > _CHUNK:
         # A vmapped while_loop runs every lane until the slowest converges: solve in chunks
         # (lax.map) so one slow pixel holds back only its own chunk.
@@ -358,12 +409,19 @@ def _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=True,
         outs = [o.reshape((n_chunks * _CHUNK,) + o.shape[2:])[: h * w] for o in outs]
         n, rho, status, n_used, residual, steps = outs
     else:
-        n, rho, status, n_used, residual, steps = batched(flat, usable, lights, thresholds,
-                                                          *extra)
+        n, rho, status, n_used, residual, steps = batched(flat, usable, lights, thresholds)
+    return _outputs(n, rho, status, n_used, residual, steps, mask, images.dtype)
+
+
+def _outputs(n, rho, status, n_used, residual, steps, mask, dtype):
+    """The `PSResult` of flat per-pixel results (`n` `(H*W, 3)`, `rho` `(H*W, C)`): default
+    outputs where the status is not OK, `MASKED` outside `mask` `(H, W)`."""
+    h, w = mask.shape
+    c = rho.shape[-1]
     m = mask.reshape(-1)
     keep = m & (status == Status.OK)
     status = jnp.where(m, status, Status.MASKED).astype(jnp.int32)
-    normals = jnp.where(keep[:, None], n, jnp.array([0, 0, 1], images.dtype))
+    normals = jnp.where(keep[:, None], n, jnp.array([0, 0, 1], dtype))
     albedo = jnp.where(keep[:, None], rho, 0)
     residual = jnp.where(keep, residual, 0)
     return PSResult(
@@ -438,18 +496,22 @@ def _ps_irls(images, lights, mask, sample_mask, thresholds, loss, delta, eps, rt
              threshold):
     dt = images.dtype
     h, w = images.shape[1:3]
-    grey, used, lt = _loop_planes(images, lights, mask, sample_mask, thresholds)
-    shared = lights.ndim == 2
+    x, grey, finite, unsat, used, lt = _planes(images, lights, mask, sample_mask, thresholds)
+    # the loop runs on constants: reverse mode cannot differentiate a `while_loop`, and the
+    # gradient is that of the final weighted solve, its weights held fixed (`_loop_inputs`)
+    g_loop, lt_loop = jax.lax.stop_gradient((grey, lt))
     loop = functools.partial(_irls_loop, loss=loss, delta=jnp.asarray(delta, dt),
                              eps=jnp.asarray(eps, dt), rtol=jnp.asarray(rtol, dt),
                              max_steps=max_steps)
-    if shared:  # the light scalars are closed over, not mapped
-        weights, steps, done = _map_chunks(lambda p: loop(p[0], p[1], lt), (grey, used), h * w)
+    if lights.ndim == 2:  # the light scalars are closed over, not mapped
+        weights, steps, done = _map_chunks(lambda p: loop(p[0], p[1], lt_loop), (g_loop, used),
+                                           h * w)
     else:
-        weights, steps, done = _map_chunks(lambda p: loop(*p), (grey, used, lt), h * w)
-    kernel = functools.partial(_pixel_irls_finish, outlier=jnp.asarray(threshold, dt))
-    return _lift(kernel, images, lights, mask, sample_mask, thresholds, iterative=False,
-                 extra=(jnp.stack(weights), steps, done))
+        weights, steps, done = _map_chunks(lambda p: loop(*p), (g_loop, used, lt_loop), h * w)
+    n, rho, status, n_in, residual = _finish_planes(
+        x, grey, finite, unsat, used, weights, lt, thresholds[0], jnp.asarray(threshold, dt),
+        done)
+    return _outputs(n, rho, status, n_in, residual, steps, mask, dt)
 
 
 def ps_sbl(images, lights, mask, sample_mask, thresholds, *, lambda1: float = 100.0,
