@@ -7,8 +7,9 @@ samples, XLA's own loops ran faster. jaxps compiles those programs with
 `core._host.CpuTuned`. This script times each program both ways, in alternating rounds
 (median over rounds, first calls apart), and checks that the results agree:
 
-- `photometric_stereo` with `barsky`, `sbl` (tuned), `irls` and `l1` (left on the default;
-  `irls` was tuned until its loop moved to planes, `ynn_before_irls_planes.json`) on
+- `photometric_stereo` with `barsky` (tuned), `irls`, `sbl` and `l1` (left on the default;
+  `irls` and `sbl` were tuned until their loops moved to planes,
+  `ynn_before_irls_planes.json`) on
   `bench_robust.py`'s 1280x1024 scene (five lights on a 45-degree cone, cast shadows, a
   Blinn-Phong lobe, 0.5% noise), with the median angular error of each;
 - `photometric_stereo(method="semi_calibrated")` at 1280x1024 and 192x168 on a Lambertian
@@ -50,13 +51,13 @@ GAINS = np.asarray([1.1, 0.9, 1.0, 1.05, 0.95], np.float32)
 def default_fusions(on: bool):
     """While `on`, every program below runs as XLA-CPU compiles it by default (the plain jit
     of each `CpuTuned`, or no routing to the tuned one); else every one without YNNPACK,
-    `"irls"` and `"l1"` included (which jaxps leaves on the default: the rows show why)."""
+    `"irls"`, `"sbl"` and `"l1"` included (left on the default: the rows show why)."""
     from jaxps.ps import _photometric_stereo, _semicalibrated
     from jaxps.reflectance import _parametric
 
     saved = (_photometric_stereo._NO_YNN_METHODS, _semicalibrated._fit_intensities,
              _parametric._solve)
-    _photometric_stereo._NO_YNN_METHODS = saved[0] | {"irls", "l1"}
+    _photometric_stereo._NO_YNN_METHODS = saved[0] | {"irls", "sbl", "l1"}
     if on:
         _photometric_stereo._NO_YNN_METHODS = frozenset()
         _semicalibrated._fit_intensities = saved[1].plain

@@ -220,8 +220,8 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
 # them (the weighted one slower), so they keep the default.
 _run_older_emitters = CpuTuned(_run.__wrapped__, OLDER_EMITTERS,
                                static_argnames=("method", "static"))
-# The robust solvers whose kernels sum over each pixel's `(K,)` samples, without YNNPACK
-# fusions (`core._host.NO_YNN`; `benchmarks/bench_ynn.py`). `"l1"` was no faster without
-# them, nor is `"irls"` since its loop works on planes (no reductions left to hand over).
-_NO_YNN_METHODS = frozenset({"barsky", "sbl"})
+# `"barsky"`, whose kernel sums over each pixel's `(K,)` samples, without YNNPACK fusions
+# (`core._host.NO_YNN`; `benchmarks/bench_ynn.py`). `"l1"` was no faster without them, nor
+# are `"irls"` and `"sbl"` since their loops work on planes (no reductions left to hand over).
+_NO_YNN_METHODS = frozenset({"barsky"})
 _run_no_ynn = CpuTuned(_run.__wrapped__, NO_YNN, static_argnames=("method", "static"))
