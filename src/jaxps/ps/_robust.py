@@ -42,75 +42,12 @@ import numpy as np
 from ..core._linalg import REL_DET_MIN, solve3
 from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status
-from ._l2 import PSResult
+from ._l2 import PSResult, _count
 
 __all__ = ["ps_barsky", "ps_irls", "ps_sbl"]
 
 # Pixels per lax.map chunk of the iterative solvers.
 _CHUNK = 8192
-
-
-def _prepare(i, usable, thresholds):
-    """Split one pixel's samples `(K, C)` into finite / unsaturated / used sets (as `l2` does)."""
-    _, saturation, shadow = thresholds
-    finite = jnp.all(jnp.isfinite(i), axis=-1)
-    i = jnp.where(finite[:, None], i, 0)
-    grey = jnp.mean(i, axis=-1)
-    unsat = finite & ~jnp.any(i >= saturation, axis=-1) & usable
-    used = unsat & (grey >= shadow)
-    return i, grey, finite, unsat, used
-
-
-def _weighted_solve(w, lights, i):
-    """`b = (L^T W L)^{-1} L^T W i` for weights `(K,)` and intensities `(K,)` or `(K, C)`."""
-    a = jnp.einsum("k,ki,kj->ij", w, lights, lights)
-    wi = w[:, None] * i if i.ndim == 2 else w * i
-    b, rel_det = solve3(a, lights.T @ wi)
-    return b, a, rel_det
-
-
-def _unit(b):
-    rho = safe_sqrt(jnp.sum(b * b))
-    return b / jnp.where(rho > 0, rho, 1), rho
-
-
-def _finish(i, grey, finite, unsat, used, w, lights, thresholds, outlier, steps, converged):
-    """Final weighted solve, per-channel albedo, inlier residual and the status of one pixel."""
-    dark = thresholds[0]
-    # Infinite weights (1/|r| of a pixel with no light at all) are dropped, and the rest scaled
-    # to at most 1 (the weighted solve does not change): no inf or NaN even in a branch that
-    # `where` discards, where it would still poison the gradient.
-    w = jnp.where(used & jnp.isfinite(w), w, 0)
-    top = jnp.max(w)
-    w = w / jnp.where(top > 0, top, 1)
-    b, a, rel_det_w = _weighted_solve(w, lights, i)  # (3, C)
-    n, rho_grey = _unit(jnp.mean(b, axis=-1))
-    r = lights.T @ (w[:, None] * i)
-    rho = safe_divide(n @ r, n @ a @ n)
-    res = grey - jnp.mean(rho) * (lights @ n)
-    scale = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(jnp.sum(used), 1).astype(i.dtype)
-    inlier = used & (jnp.abs(res) <= outlier * scale)
-    n_in = jnp.sum(inlier)
-    residual = safe_sqrt(jnp.sum(jnp.where(inlier, res**2, 0))
-                          / jnp.maximum(n_in, 1).astype(i.dtype))
-    # Whether the usable lights span 3-D at all (unweighted), and whether the weighted fit does.
-    _, _, rel_det_used = _weighted_solve(used.astype(i.dtype), lights, grey)
-    status = jnp.select(
-        [
-            jnp.sum(finite) < 3,
-            jnp.max(jnp.where(finite, grey, -jnp.inf)) <= dark,
-            jnp.sum(unsat) < 3,
-            jnp.sum(used) < 3,
-            (rel_det_used < REL_DET_MIN) | ~(rel_det_w > 0),
-            ~(rho_grey > 0),
-            n[2] < 0,
-            ~converged,
-        ],
-        [Status.INVALID, Status.DARK, Status.SATURATED, Status.TOO_FEW_LIGHTS,
-         Status.DEGENERATE, Status.DARK, Status.BACKFACING, Status.NOT_CONVERGED],
-        Status.OK,
-    )
-    return n, rho, status, n_in, residual, steps
 
 
 # ----------------------------------------------------------------------------------------------
@@ -126,45 +63,57 @@ def _drop_patterns(k: int, max_drop: int) -> tuple[np.ndarray, np.ndarray]:
     return arr[:, 0], arr[:, 1]
 
 
-def _pixel_barsky(i, usable, lights, thresholds, threshold, max_drop):
-    i, grey, finite, unsat, used = _prepare(i, usable, thresholds)
-    k = grey.shape[0]
-    dtype = i.dtype
-    tiny = jnp.finfo(dtype).tiny
-    n_dark, n_bright = _drop_patterns(k, max_drop)
-    n_used = jnp.sum(used)
-    # Rank of each sample among the used ones, from the dark end and from the bright end.
-    rank_dark = jnp.argsort(jnp.argsort(jnp.where(used, grey, jnp.inf)))
-    rank_bright = jnp.argsort(jnp.argsort(jnp.where(used, -grey, jnp.inf)))
-    mean_used = jnp.sum(jnp.where(used, grey, 0)) / jnp.maximum(n_used, 1).astype(dtype)
-    scale = jnp.maximum(mean_used, tiny)
+def _ranks(keys):
+    """Each key's rank in ascending order, ties by index (`argsort(argsort(keys))` of a stable
+    sort), from K scalars by pairwise comparison: elementwise work under `vmap`."""
+    ks = range(len(keys))
+    return [sum(((keys[i] < keys[j]) | ((keys[i] == keys[j]) & (i < j))).astype(jnp.int32)
+                for i in ks if i != j) for j in ks]
 
-    def candidate(nd, nb):
-        drop_d = used & (rank_dark < nd)
-        drop_b = used & (rank_bright < nb) & ~drop_d
-        keep = used & ~drop_d & ~drop_b
-        n_keep = jnp.sum(keep)
-        b, _, rel_det = _weighted_solve(keep.astype(dtype), lights, grey)
-        pred = lights @ b
-        res = jnp.where(keep, grey - pred, 0)
-        rms = safe_sqrt(jnp.sum(res**2) / jnp.maximum(n_keep, 1).astype(dtype)) / scale
-        # A dropped dark sample must be a shadow (darker than predicted), a bright one a highlight.
-        # (Lambert's clamp: a dark sample at 0 under a light behind the surface is no shadow.)
-        slack = threshold * scale
-        consistent = (jnp.all(~drop_d | (grey <= jnp.maximum(pred, 0) + slack))
-                      & jnp.all(~drop_b | (grey >= pred - slack)))
+
+def _barsky_planes(grey, used, lt, threshold, max_drop):
+    """Barsky's subset search on planes (`grey`, `used`, `lt` as from `_planes`): for each
+    candidate (`_drop_patterns`, fewest drops first) the fit without the `nd` darkest and `nb`
+    brightest used samples, its score and its sign test; the first best candidate's kept
+    samples (all used ones when no candidate is acceptable). Returns K keep flags."""
+    ks = range(len(grey))
+    dtype = grey[0].dtype
+    inf = jnp.asarray(jnp.inf, dtype)
+    count = sum(u.astype(dtype) for u in used)
+    scale = jnp.maximum(sum(jnp.where(u, g, 0) for u, g in zip(used, grey))
+                        / jnp.maximum(count, 1), jnp.finfo(dtype).tiny)
+    rank_dark = _ranks([jnp.where(u, g, inf) for u, g in zip(used, grey)])
+    rank_bright = _ranks([jnp.where(u, -g, inf) for u, g in zip(used, grey)])
+    slack = threshold * scale
+    best_score, best_keep = None, used
+    for nd, nb in zip(*(a.tolist() for a in _drop_patterns(len(grey), max_drop))):
+        drop_d = [u & (r < nd) for u, r in zip(used, rank_dark)]
+        drop_b = [u & (r < nb) & ~d for u, r, d in zip(used, rank_bright, drop_d)]
+        keep = [u & ~d & ~b for u, d, b in zip(used, drop_d, drop_b)]
+        n_keep = _count(keep)
+        w = [k.astype(dtype) for k in keep]
+        wl = [[w[j] * lt[j][p] for p in range(3)] for j in ks]
+        a = [[sum(wl[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
+        b, rel_det = solve3(a, [sum(wl[j][p] * grey[j] for j in ks) for p in range(3)])
+        pred = [sum(lt[j][p] * b[p] for p in range(3)) for j in ks]
+        sq = sum(jnp.where(keep[j], (grey[j] - pred[j]) ** 2, 0) for j in ks)
+        rms = safe_sqrt(sq / jnp.maximum(n_keep, 1).astype(dtype)) / scale
+        # A dropped dark sample must be a shadow (darker than predicted), a bright one a
+        # highlight. (Lambert's clamp: a dark sample at 0 under a light behind the surface is
+        # no shadow.)
+        consistent = functools.reduce(jnp.logical_and, [
+            (~drop_d[j] | (grey[j] <= jnp.maximum(pred[j], 0) + slack))
+            & (~drop_b[j] | (grey[j] >= pred[j] - slack)) for j in ks])
         ok = (n_keep >= 3) & (rel_det >= REL_DET_MIN) & consistent & (b[2] > 0)
-        score = rms + threshold * (nd + nb).astype(dtype)
-        return jnp.where(ok, score, jnp.inf), keep
-
-    ranks = rank_dark.dtype  # int64 under jax_enable_x64: compare like with like
-    scores, keeps = jax.vmap(candidate)(jnp.asarray(n_dark, ranks), jnp.asarray(n_bright, ranks))
-    best = jnp.argmin(scores)  # first of equal scores: fewest drops, shadows first
-    keep = jnp.where(jnp.isfinite(scores[best]), keeps[best], used)
-    w = keep.astype(dtype)
-    out = _finish(i, grey, finite, unsat, keep, w, lights, thresholds, threshold,
-                  jnp.sum(used & ~keep).astype(jnp.int32), jnp.array(True))
-    return out
+        score = jnp.where(ok, rms + threshold * (nd + nb), inf)
+        if best_score is None:
+            best_score, best_keep = score, keep
+        else:  # strictly better only: the first of equal scores wins (fewest drops, shadows)
+            better = score < best_score
+            best_score = jnp.where(better, score, best_score)
+            best_keep = [jnp.where(better, k, bk) for k, bk in zip(keep, best_keep)]
+    found = jnp.isfinite(best_score)
+    return [jnp.where(found, k, u) for k, u in zip(best_keep, used)]
 
 
 # ----------------------------------------------------------------------------------------------
@@ -221,6 +170,10 @@ def _irls_loop(g, used, lt, *, loss, delta, eps, rtol, max_steps):
     return weights(b), steps, done
 
 
+# ----------------------------------------------------------------------------------------------
+# Shared by the solvers: the image as planes, chunked loops, the final weighted solve.
+
+
 def _planes(images, lights, mask, sample_mask, thresholds):
     """`_prepare` on flat `(H*W,)` planes: K lists of C samples (non-finite ones zeroed), K grey
     samples, the K finite / unsaturated / used flags, and K lights `[lx, ly, lz]` (shared:
@@ -263,10 +216,6 @@ def _map_chunks(fn, planes, n):
     chunks = jax.tree.map(lambda a: jnp.pad(a, (0, pad)).reshape(n_chunks, _CHUNK), planes)
     outs = jax.lax.map(batched, chunks)
     return jax.tree.map(lambda a: a.reshape(n_chunks * _CHUNK)[:n], outs)
-
-
-def _count(flags):
-    return sum(f.astype(jnp.int32) for f in flags)
 
 
 def _finish_planes(x, grey, finite, unsat, used, w, lt, dark, outlier, converged):
@@ -373,26 +322,7 @@ def _sbl_loop(g, used, lt, *, lambda1, lambda2, gamma_min, rtol, max_steps):
 
 
 # ----------------------------------------------------------------------------------------------
-# Lifting a one-pixel kernel over the image (same layout handling as `ps_l2`).
-
-
-def _lift(kernel, images, lights, mask, sample_mask, thresholds):
-    """`kernel(i, usable, lights, thresholds)` of one pixel (`(K, C)` samples, `(K,)` usable
-    flags, `(K, 3)` lights) over every pixel of the image, by `vmap`."""
-    k, h, w, c = images.shape
-    flat = images.reshape(k, h * w, c)
-    # Masked pixels get no usable sample.
-    usable = (sample_mask & mask[None]).reshape(k, h * w)
-    if lights.ndim == 2:
-        light_axis = None
-    else:
-        lights = lights.reshape(k, h * w, 3)
-        lights = lights / jnp.maximum(jnp.linalg.norm(lights, axis=-1, keepdims=True),
-                                      jnp.finfo(images.dtype).tiny)
-        light_axis = 1
-    n, rho, status, n_used, residual, steps = jax.vmap(
-        kernel, in_axes=(1, 1, light_axis, None))(flat, usable, lights, thresholds)
-    return _outputs(n, rho, status, n_used, residual, steps, mask, images.dtype)
+# The result of the plane kernels.
 
 
 def _outputs(n, rho, status, n_used, residual, steps, mask, dtype):
@@ -441,9 +371,16 @@ def ps_barsky(images, lights, mask, sample_mask, thresholds, *, threshold: float
 
 @functools.partial(jax.jit, static_argnums=(6,))
 def _ps_barsky(images, lights, mask, sample_mask, thresholds, threshold, max_drop):
-    thr = jnp.asarray(threshold, images.dtype)
-    kernel = functools.partial(_pixel_barsky, threshold=thr, max_drop=max_drop)
-    return _lift(kernel, images, lights, mask, sample_mask, thresholds)
+    dt = images.dtype
+    x, grey, finite, unsat, used, lt = _planes(images, lights, mask, sample_mask, thresholds)
+    thr = jnp.asarray(threshold, dt)
+    # the search picks samples; the gradient is that of the final solve on the kept ones
+    keep = _barsky_planes(*jax.lax.stop_gradient((grey, used, lt)), thr, max_drop)
+    n, rho, status, n_in, residual = _finish_planes(
+        x, grey, finite, unsat, keep, [k.astype(dt) for k in keep], lt, thresholds[0], thr,
+        jnp.array(True))
+    dropped = _count([u & ~k for u, k in zip(used, keep)])
+    return _outputs(n, rho, status, n_in, residual, dropped, mask, dt)
 
 
 def ps_irls(images, lights, mask, sample_mask, thresholds, *, loss: str = "l1",
