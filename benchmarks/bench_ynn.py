@@ -1,17 +1,17 @@
 """Programs with and without YNNPACK fusions (`core._host.NO_YNN`), in the same process.
 
 This JAX's XLA-CPU hands reductions, together with the elementwise work that feeds them, to
-YNNPACK ("ynn" fusions). For the iterative solvers, whose every step sums over each pixel's K
+YNNPACK ("ynn" fusions). For the LM fits, whose every step sums over each pixel's K
 samples, XLA's own loops ran faster. jaxps compiles those programs with
 `compiler_options={"xla_cpu_experimental_ynn_fusion_type": ""}` (no YNNPACK fusion) through
 `core._host.CpuTuned`. This script times each program both ways, in alternating rounds
 (median over rounds, first calls apart), and checks that the results agree:
 
-- `photometric_stereo` with `barsky` (tuned), `irls`, `sbl` and `l1` (left on the default;
-  `irls` and `sbl` were tuned until their loops moved to planes,
-  `ynn_before_irls_planes.json`) on
-  `bench_robust.py`'s 1280x1024 scene (five lights on a 45-degree cone, cast shadows, a
-  Blinn-Phong lobe, 0.5% noise), with the median angular error of each;
+- `photometric_stereo` with `irls`, `barsky`, `sbl` and `l1`, left on the default (`irls`,
+  `barsky` and `sbl` were compiled without YNNPACK until their kernels moved to planes,
+  `ynn_before_irls_planes.json`), on `bench_robust.py`'s 1280x1024 scene (five lights on a
+  45-degree cone, cast shadows, a Blinn-Phong lobe, 0.5% noise), with the median angular
+  error of each;
 - `photometric_stereo(method="semi_calibrated")` at 1280x1024 and 192x168 on a Lambertian
   rendering under the same lights with frames scaled by gains 0.9-1.1, whose LM fit of the
   intensities is tuned (the largest relative error of the fitted intensities);
@@ -50,23 +50,27 @@ GAINS = np.asarray([1.1, 0.9, 1.0, 1.05, 0.95], np.float32)
 @contextlib.contextmanager
 def default_fusions(on: bool):
     """While `on`, every program below runs as XLA-CPU compiles it by default (the plain jit
-    of each `CpuTuned`, or no routing to the tuned one); else every one without YNNPACK,
-    `"irls"`, `"sbl"` and `"l1"` included (left on the default: the rows show why)."""
+    of each `CpuTuned`); else every one without YNNPACK, the robust solvers included (which
+    jaxps leaves on the default since their kernels work on planes: the rows show why)."""
+    from jaxps.core._host import NO_YNN, CpuTuned
     from jaxps.ps import _photometric_stereo, _semicalibrated
     from jaxps.reflectance import _parametric
 
-    saved = (_photometric_stereo._NO_YNN_METHODS, _semicalibrated._fit_intensities,
-             _parametric._solve)
-    _photometric_stereo._NO_YNN_METHODS = saved[0] | {"irls", "sbl", "l1"}
+    saved = (_photometric_stereo._run, _semicalibrated._fit_intensities, _parametric._solve)
     if on:
-        _photometric_stereo._NO_YNN_METHODS = frozenset()
         _semicalibrated._fit_intensities = saved[1].plain
         _parametric._solve = saved[2].plain
+    else:
+        _photometric_stereo._run = _NO_YNN_RUN.setdefault(
+            "run", CpuTuned(saved[0].__wrapped__, NO_YNN, static_argnames=("method", "static")))
     try:
         yield
     finally:
-        (_photometric_stereo._NO_YNN_METHODS, _semicalibrated._fit_intensities,
+        (_photometric_stereo._run, _semicalibrated._fit_intensities,
          _parametric._solve) = saved
+
+
+_NO_YNN_RUN: dict = {}  # one tuned `_run` for the whole run (its compiled programs kept)
 
 
 def angular_median(normals, truth, mask) -> float:

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ..core._host import NO_YNN, OLDER_EMITTERS, CpuTuned, cpu_top_level, to_device
+from ..core._host import OLDER_EMITTERS, CpuTuned, cpu_top_level, to_device
 from ..lights._directions import validate_lights
 from ._l2 import PSResult, host_constants, l2_branch
 
@@ -171,8 +171,6 @@ def photometric_stereo(
         images = to_device(images)  # the eager solvers take device arrays
     elif branch == "all_used":
         run = _run_older_emitters
-    elif method in _NO_YNN_METHODS:
-        run = _run_no_ynn
     return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
                static=static)
 
@@ -220,8 +218,3 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
 # them (the weighted one slower), so they keep the default.
 _run_older_emitters = CpuTuned(_run.__wrapped__, OLDER_EMITTERS,
                                static_argnames=("method", "static"))
-# `"barsky"`, whose kernel sums over each pixel's `(K,)` samples, without YNNPACK fusions
-# (`core._host.NO_YNN`; `benchmarks/bench_ynn.py`). `"l1"` was no faster without them, nor
-# are `"irls"` and `"sbl"` since their loops work on planes (no reductions left to hand over).
-_NO_YNN_METHODS = frozenset({"barsky"})
-_run_no_ynn = CpuTuned(_run.__wrapped__, NO_YNN, static_argnames=("method", "static"))
