@@ -2,11 +2,13 @@
 
 Plain least squares (`method="l2"`, Woodham 1980) lets one cast-shadowed or specular sample pull
 the normal of a pixel by tens of degrees. The solvers here treat such samples as outliers of
-Lambert's law $i_k = l_k^T b$ ($b = \\rho n$). Each is a one-pixel kernel lifted with `jax.vmap`
-and jitted; the iterative ones run a `lax.while_loop` with an explicit step limit and report
-`Status.NOT_CONVERGED` when they hit it. Their kernels take a pixel's K samples as K scalars
-(planes of pixels once lifted), not a `(K,)` vector, so that every step is elementwise work
-that XLA-CPU fuses and vectorises (`irls` 2.5x and `sbl` faster at 1 MP, docs/robust.md).
+Lambert's law $i_k = l_k^T b$ ($b = \\rho n$). Each is jitted and written for one pixel whose K
+samples are K scalars: on the image they are K planes of pixels (the reweighting loops lifted
+by `jax.vmap`), not a `(K,)` vector per pixel, so that every step is elementwise work that
+XLA-CPU fuses and vectorises (at 1 MP: `barsky` 1.8 -> 0.17 s, `irls` 1.1 -> 0.26 s, `sbl`
+6.1 -> 1.2 s; docs/robust.md, "How the solvers are built"). The iterative ones run a
+`lax.while_loop` with an explicit step limit and report `Status.NOT_CONVERGED` when they hit
+it.
 
 - `"barsky"`: shadow/highlight rejection in the spirit of Barsky & Petrou, "The 4-source
   photometric stereo technique for three-dimensional surfaces in the presence of highlights and
