@@ -177,9 +177,10 @@ def _irls_loop(g, used, lt, *, loss, delta, eps, rtol, max_steps):
 
 
 def _planes(images, lights, mask, sample_mask, thresholds):
-    """`_prepare` on flat `(H*W,)` planes: K lists of C samples (non-finite ones zeroed), K grey
-    samples, the K finite / unsaturated / used flags, and K lights `[lx, ly, lz]` (shared:
-    scalars; per pixel: unit planes)."""
+    """The image as flat `(H*W,)` planes, sorted as `method="l2"` sorts samples: K lists of C
+    samples (non-finite ones zeroed), K grey samples, the K finite / unsaturated / used flags
+    (used: also in `sample_mask` and `mask`, and not below the shadow threshold), and K lights
+    `[lx, ly, lz]` (shared: scalars; per pixel: unit planes)."""
     k, h, w, c = images.shape
     _, saturation, shadow = thresholds
     flat = images.reshape(k, h * w, c)
@@ -221,9 +222,11 @@ def _map_chunks(fn, planes, n):
 
 
 def _finish_planes(x, grey, finite, unsat, used, w, lt, dark, outlier, converged):
-    """`_finish` on planes (the arguments of `_planes`, `w` K weight planes): the final
-    weighted solve, per-channel albedo, inlier residual and status of every pixel, as
-    elementwise work. Returns normals `(P, 3)`, albedo `(P, C)`, status, inliers, residual."""
+    """The final weighted solve of every pixel, on planes (the arguments of `_planes`, `w` K
+    weight planes, held fixed: the gradient flows through this solve only): unit normal from
+    the channel-mean solution, per-channel albedo, the inliers of the fit (within `outlier` x
+    the mean used intensity), their RMS and the status. Returns normals `(P, 3)`, albedo
+    `(P, C)`, status, number of inliers, residual."""
     ks = range(len(grey))
     dtype = grey[0].dtype
     w = [jnp.where(u & jnp.isfinite(v), v, 0) for u, v in zip(used, w)]
