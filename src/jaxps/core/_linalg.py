@@ -5,11 +5,24 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array
 
-__all__ = ["REL_DET_MIN", "solve3"]
+__all__ = ["REL_DET_MIN", "normal_equations", "solve3"]
 
 # det(A) / (trace(A)/3)^3 below this marks the usable lights as not spanning 3-D
 # (roughly a light-matrix condition number above 1e3).
 REL_DET_MIN = 1e-6
+
+
+def normal_equations(w, lights, ys):
+    """The weighted normal equations $A = \\sum_k w_k l_k l_k^T$, $r = \\sum_k w_k y_k l_k$, on
+    scalars: `w` K weights, `lights` K `[lx, ly, lz]`, `ys` a list of right-hand sides, each K
+    samples. Returns `A` as nested lists (its lower triangle the upper one's values: 6 sums of
+    K products, not 9) and one `r` (3 sums) per entry of `ys`."""
+    ks = range(len(w))
+    wl = [[w[k] * lights[k][p] for p in range(3)] for k in ks]
+    upper = {(p, q): sum(wl[k][p] * lights[k][q] for k in ks) for p in range(3)
+             for q in range(p, 3)}
+    a = [[upper[min(p, q), max(p, q)] for q in range(3)] for p in range(3)]
+    return a, [[sum(wl[k][p] * y[k] for k in ks) for p in range(3)] for y in ys]
 
 
 def solve3(a, r) -> tuple[Array, Array]:

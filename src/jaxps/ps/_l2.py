@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..core._host import cpu_top_level
-from ..core._linalg import REL_DET_MIN, solve3
+from ..core._linalg import REL_DET_MIN, normal_equations, solve3
 from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
@@ -170,16 +170,15 @@ def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
     dtype = x[0][0].dtype
     x, g, used, cases = _samples(x, usable, thresholds, all_finite)
     w = [u.astype(dtype) for u in used]
-    wl = [[w[k] * lights[k][p] for p in range(3)] for k in ks]
-    a = [[sum(wl[k][p] * lights[k][q] for k in ks) for q in range(3)] for p in range(3)]
-    b, rel_det = solve3(a, [sum(wl[k][p] * g[k] for k in ks) for p in range(3)])
+    a, (r,) = normal_equations(w, lights, [g])
+    b, rel_det = solve3(a, r)
     b = [b[p] for p in range(3)]
     sq = sum(w[k] * (g[k] - sum(lights[k][p] * b[p] for p in range(3))) ** 2 for k in ks)
 
     def colour_albedo(n):
         nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
-        return [safe_divide(sum(n[p] * sum(wl[k][p] * x[k][c] for k in ks) for p in range(3)),
-                             nan) for c in range(len(x[0]))]
+        rc = normal_equations(w, lights, [[x[k][c] for k in ks] for c in range(len(x[0]))])[1]
+        return [safe_divide(sum(n[p] * r_c[p] for p in range(3)), nan) for r_c in rc]
 
     cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))
     return _finish(b, sq, _count(used), cases, inside, None if len(x[0]) == 1 else colour_albedo)

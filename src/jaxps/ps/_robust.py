@@ -41,7 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core._linalg import REL_DET_MIN, solve3
+from ..core._linalg import REL_DET_MIN, normal_equations, solve3
 from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status
 from ._l2 import PSResult, _count
@@ -94,9 +94,8 @@ def _barsky_planes(grey, used, lt, threshold, max_drop):
         keep = [u & ~d & ~b for u, d, b in zip(used, drop_d, drop_b)]
         n_keep = _count(keep)
         w = [k.astype(dtype) for k in keep]
-        wl = [[w[j] * lt[j][p] for p in range(3)] for j in ks]
-        a = [[sum(wl[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
-        b, rel_det = solve3(a, [sum(wl[j][p] * grey[j] for j in ks) for p in range(3)])
+        a, (r,) = normal_equations(w, lt, [grey])
+        b, rel_det = solve3(a, r)
         pred = [sum(lt[j][p] * b[p] for p in range(3)) for j in ks]
         sq = sum(jnp.where(keep[j], (grey[j] - pred[j]) ** 2, 0) for j in ks)
         rms = safe_sqrt(sq / jnp.maximum(n_keep, 1).astype(dtype)) / scale
@@ -140,9 +139,8 @@ def _irls_loop(g, used, lt, *, loss, delta, eps, rtol, max_steps):
     floor = eps * scale
 
     def solve(w):
-        wl = [[w[j] * lt[j][p] for p in range(3)] for j in ks]
-        a = [[sum(wl[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
-        b, rel_det = solve3(a, [sum(wl[j][p] * g[j] for j in ks) for p in range(3)])
+        a, (r,) = normal_equations(w, lt, [g])
+        b, rel_det = solve3(a, r)
         return [b[0], b[1], b[2]], rel_det
 
     def weights(b):
@@ -162,9 +160,10 @@ def _irls_loop(g, used, lt, *, loss, delta, eps, rtol, max_steps):
         b_new, rel_det = solve(weights(b))
         ok = jnp.isfinite(b_new[0]) & jnp.isfinite(b_new[1]) & jnp.isfinite(b_new[2])
         b_new = [jnp.where(ok & (rel_det > 0), v, u) for v, u in zip(b_new, b)]
-        moved = safe_sqrt(sum((v - u) ** 2 for v, u in zip(b_new, b)))
-        size = safe_sqrt(sum(v * v for v in b_new))
-        return b_new, step + 1, moved <= rtol * jnp.maximum(size, scale)
+        # |db| <= rtol max(|b|, s), squared: no square roots in the loop
+        moved = sum((v - u) ** 2 for v, u in zip(b_new, b))
+        size = jnp.maximum(sum(v * v for v in b_new), scale * scale)
+        return b_new, step + 1, moved <= rtol * rtol * size
 
     b0, _ = solve([u.astype(dtype) for u in used])
     b, steps, done = jax.lax.while_loop(cond, body, (b0, jnp.array(0, jnp.int32),
@@ -232,10 +231,8 @@ def _finish_planes(x, grey, finite, unsat, used, w, lt, dark, outlier, converged
     w = [jnp.where(u & jnp.isfinite(v), v, 0) for u, v in zip(used, w)]
     top = functools.reduce(jnp.maximum, w)
     w = [v / jnp.where(top > 0, top, 1) for v in w]
-    wl = [[w[j] * lt[j][p] for p in range(3)] for j in ks]
-    a = [[sum(wl[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
     n_ch = len(x[0])
-    r = [[sum(wl[j][p] * x[j][ch] for j in ks) for p in range(3)] for ch in range(n_ch)]
+    a, r = normal_equations(w, lt, [[x[j][ch] for j in ks] for ch in range(n_ch)])
     # the channel-mean solution (the solve is linear in its right-hand side)
     b, rel_det_w = solve3(a, [sum(r[ch][p] for ch in range(n_ch)) / n_ch for p in range(3)])
     rho_grey = safe_sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
@@ -253,7 +250,7 @@ def _finish_planes(x, grey, finite, unsat, used, w, lt, dark, outlier, converged
                          / jnp.maximum(n_in, 1).astype(dtype))
     # whether the usable lights span 3-D at all (unweighted), and whether the weighted fit does
     uw = [u.astype(dtype) for u in used]
-    a_used = [[sum(uw[j] * lt[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
+    a_used = normal_equations(uw, lt, [])[0]
     _, rel_det_used = solve3(a_used, [jnp.zeros_like(grey[0])] * 3)
     brightest = functools.reduce(jnp.maximum, [jnp.where(f, g, -jnp.inf)
                                                for f, g in zip(finite, grey)])
@@ -297,9 +294,8 @@ def _sbl_loop(g, used, lt, *, lambda1, lambda2, gamma_min, rtol, max_steps):
         return [[a[p][q] + lam if p == q else a[p][q] for q in range(3)] for p in range(3)]
 
     def solve_b(gamma):
-        wl = [[uw[j] / gamma[j] * lt[j][p] for p in range(3)] for j in ks]
-        a = [[sum(wl[j][p] * lt[j][q] for j in ks) for q in range(3)] for p in range(3)]
-        b, _ = solve3(plus(a, lambda2), [sum(wl[j][p] * y[j] for j in ks) for p in range(3)])
+        a, (r,) = normal_equations([u / v for u, v in zip(uw, gamma)], lt, [y])
+        b, _ = solve3(plus(a, lambda2), r)
         return [b[0], b[1], b[2]], a
 
     def cond(state):
