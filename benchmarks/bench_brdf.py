@@ -313,7 +313,7 @@ def relight_speed(models, normals, albedo, rounds=15):
         _mlp,
         _mlp_elementwise,
         _predict_one,
-        _relight_kernel,
+        _relight,
         _support_weight,
     )
     from jaxps.reflectance._features import (
@@ -366,7 +366,7 @@ def relight_speed(models, normals, albedo, rounds=15):
                                                                 albedo, light),
         "render_lambertian": lambda: jaxps.render_lambertian(normals, albedo, light),
         # the same kernel compiled without its 512-bit vector preference
-        "relight_mlp_ratio_default_vector_width (before _WIDE_VECTORS)": lambda: _relight_kernel(
+        "relight_mlp_ratio_default_vector_width (before _WIDE_VECTORS)": lambda: _relight.plain(
             dataclasses.replace(m, fit=None), normals, albedo, light),
         "relight_mlp_ratio_per_sample (previous kernel)": partial_jit(
             relight_per_sample, normals, albedo, light),

@@ -170,15 +170,15 @@ def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
     dtype = x[0][0].dtype
     x, g, used, cases = _samples(x, usable, thresholds, all_finite)
     w = [u.astype(dtype) for u in used]
-    a, (r,) = normal_equations(w, lights, [g])
+    channels = [] if len(x[0]) == 1 else [[x[k][c] for k in ks] for c in range(len(x[0]))]
+    a, (r, *r_channels) = normal_equations(w, lights, [g, *channels])
     b, rel_det = solve3(a, r)
     b = [b[p] for p in range(3)]
     sq = sum(w[k] * (g[k] - sum(lights[k][p] * b[p] for p in range(3))) ** 2 for k in ks)
 
     def colour_albedo(n):
         nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
-        rc = normal_equations(w, lights, [[x[k][c] for k in ks] for c in range(len(x[0]))])[1]
-        return [safe_divide(sum(n[p] * r_c[p] for p in range(3)), nan) for r_c in rc]
+        return [safe_divide(sum(n[p] * r_c[p] for p in range(3)), nan) for r_c in r_channels]
 
     cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))
     return _finish(b, sq, _count(used), cases, inside, None if len(x[0]) == 1 else colour_albedo)

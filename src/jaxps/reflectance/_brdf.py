@@ -729,28 +729,12 @@ def relight(
                                                   jnp.zeros((), out.dtype))
     # the fit report is a static field of the model: drop it so that models that differ only in
     # their report (every new fit) share one compiled relight
-    out = _relight_jit(dataclasses.replace(model, fit=None), normals, albedo, lights)
+    out = _relight(dataclasses.replace(model, fit=None), normals, albedo, lights)
     if mask is not None:
         out = jnp.where(jnp.asarray(mask, bool)[None], out, jnp.zeros((), out.dtype))
     return out
 
 
-def _relight_jit(model, normals, albedo, lights):
-    """`_relight_kernel`, compiled with 512-bit vectors on the CPU outside any trace.
-
-    AVX-512 for this elementwise kernel (tanh, the angle polynomials): bit-identical results,
-    9.9 -> 8.6 ms median for a 700x850 MLP relight on this project's CPU, in the same rounds
-    (`benchmarks/bench_brdf.py --part speed`). A preference only: CPUs without AVX-512 keep
-    their width. JAX accepts compiler options on top-level jits only, so inside `jit`/`grad`
-    the plain kernel is traced; other backends take it too (the option is XLA-CPU's).
-    """
-    return _relight_wide(model, normals, albedo, lights)
-
-
-_WIDE_VECTORS = {"xla_cpu_prefer_vector_width": 512}
-
-
-@eqx.filter_jit
 def _relight_kernel(model, normals, albedo, lights):
     """`(K, H, W)` images, feature-major: every image-sized quantity is a `(K, P)` array
     (P = H W; per-pixel terms `(1, P)`), so the whole render is elementwise work that XLA fuses
@@ -787,7 +771,13 @@ def _relight_kernel(model, normals, albedo, lights):
     return jnp.broadcast_to(out, (k, h * w)).reshape(k, h, w)
 
 
-_relight_wide = CpuTuned(_relight_kernel.__wrapped__, _WIDE_VECTORS, jit=eqx.filter_jit)
+# Compiled with 512-bit vectors on the CPU outside any trace (`CpuTuned`): AVX-512 for this
+# elementwise kernel (tanh, the angle polynomials) gave bit-identical results, 9.9 -> 8.6 ms
+# median for a 700x850 MLP relight on this project's CPU, in the same rounds
+# (`benchmarks/bench_brdf.py --part speed`, whose "default vector width" row calls `.plain`).
+# A preference only: CPUs without AVX-512 keep their width, other backends ignore it.
+_WIDE_VECTORS = {"xla_cpu_prefer_vector_width": 512}
+_relight = CpuTuned(_relight_kernel, _WIDE_VECTORS, jit=eqx.filter_jit)
 
 
 def _mlp_elementwise(params, rows):
