@@ -48,8 +48,13 @@ from ._l2 import PSResult, _count
 
 __all__ = ["ps_barsky", "ps_irls", "ps_sbl"]
 
-# Pixels per lax.map chunk of the iterative solvers.
-_CHUNK = 8192
+# Pixels per lax.map chunk of the iterative solvers. A chunk runs until its slowest pixel
+# converges; small chunks waste fewer steps, but XLA-CPU splits larger loop bodies across
+# threads at a cost. At 1280x1024 (`benchmarks/robust_speed_ab.py --chunk N`, same results
+# for every N): irls 0.24 s at 64, 0.20-0.21 s at 128, 0.25 s at 192, 0.49 s at 256, 0.23-0.24
+# s at 8192; sbl 0.66 / 0.59 / 1.04 / 1.93 / 1.09-1.14 s. At 192x168 128 and 8192 tie for irls,
+# and sbl takes 25 against 35 ms.
+_CHUNK = 128
 
 
 # ----------------------------------------------------------------------------------------------
