@@ -45,6 +45,17 @@ def to_device(array, dtype=None):
     return jax.device_put(np.asarray(array, dtype))
 
 
+def cpu_cores() -> int:
+    """The CPU cores this process may run on (its affinity mask where the OS has one, which
+    `os.cpu_count` ignores: a container limited to 2 cores of a 64-core host sees 64)."""
+    import os
+
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        return os.cpu_count() or 1
+
+
 def cpu_top_level(*trees) -> bool:
     """Whether a jitted call with these arguments runs as its own program on the CPU: no
     argument is a tracer (JAX accepts `compiler_options` on top-level jits only; inside a

@@ -10,13 +10,21 @@ from __future__ import annotations
 
 import functools
 import importlib
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ..core._host import OLDER_EMITTERS, CpuTuned, cpu_top_level, to_device
+from ..core._host import (
+    OLDER_EMITTERS,
+    CpuTuned,
+    aligned_empty,
+    cpu_cores,
+    cpu_top_level,
+    to_device,
+)
 from ..lights._directions import validate_lights
 from ._l2 import PSResult, host_constants, l2_branch
 
@@ -37,6 +45,12 @@ PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
 # Solvers that check their options on concrete values (and jit their own cores) are called
 # outside the wrapper's jit.
 _EAGER_SOLVERS = frozenset({"semi_calibrated", "oren_nayar"})
+# Solvers whose per-pixel loops are XLA `while_loop`s, which XLA-CPU runs on one thread. A
+# top-level CPU call solves them in row bands of at least `_BAND_PIXELS` pixels, one band per
+# core, each band a call of its own on a thread of its own: pixels are independent, so the
+# results are those of one call (docs/robust.md, "Row bands on threads").
+_BANDED_SOLVERS = frozenset({"irls", "sbl"})
+_BAND_PIXELS = 1 << 14
 
 
 def _sample_thresholds(shadow_threshold: float | None = None, saturation: float = 1.0,
@@ -111,6 +125,9 @@ def photometric_stereo(
     waits for one read of its flags (does any pixel drop a sample? is any sample non-finite?)
     and then compiles and runs only the solve it needs; the solve itself is dispatched asynchronously as usual. Inside a trace the
     choice is a `lax.cond` in the program (docs/photometric_stereo.md, "How it is built").
+    For `"irls"` and `"sbl"`, such a call on a multi-core CPU solves bands of rows on threads
+    of their own (one per core, at least 16384 pixels each) and returns once all are done;
+    the results are those of one call.
 
     **Raises:** `ValueError` for a wrong shape, dtype, method or light set (see
     `validate_lights`).
@@ -171,8 +188,59 @@ def photometric_stereo(
         images = to_device(images)  # the eager solvers take device arrays
     elif branch == "all_used":
         run = _run_older_emitters
+    elif method in _BANDED_SOLVERS and not dynamic:
+        bands = min(cpu_cores(), h * w // _BAND_PIXELS)
+        if bands > 1 and cpu_top_level(images, lights, mask, sample_mask):
+            return _in_row_bands(images, lights, mask, sample_mask, thresholds, method,
+                                 static, bands)
     return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
                static=static)
+
+
+def _in_row_bands(images, lights, mask, sample_mask, thresholds, method, static, n):
+    """`_run` on `n` bands of rows, each on its own thread, joined into one `PSResult`.
+
+    Every band has the same height (the last one padded with masked rows), so one program
+    is compiled for all of them. Bands are numpy views of host arrays (CPU arrays are read in
+    place), which `_run` takes as arguments.
+    """
+    h = images.shape[1]
+    rows = -(-h // n)
+    images, lights = np.asarray(images), np.asarray(lights)
+    mask = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    sample_mask = None if sample_mask is None else np.asarray(sample_mask, bool)
+
+    def band(i):
+        top, bottom = i * rows, min((i + 1) * rows, h)
+        pad = rows - (bottom - top)
+
+        def cut(a, axis, **kw):
+            a = a[(slice(None),) * axis + (slice(top, bottom),)]
+            if pad:  # the last band: masked rows below the image
+                widths = [(0, 0)] * a.ndim
+                widths[axis] = (0, pad)
+                a = np.pad(a, widths, **kw)
+            return a
+
+        band_lights = lights if lights.ndim == 2 else cut(lights, 1, mode="edge")
+        band_samples = None if sample_mask is None else cut(sample_mask, 1)
+        res = _run(cut(images, 1), band_lights, cut(mask, 0), band_samples, thresholds, {},
+                   method=method, static=static)
+        return top, bottom, jax.tree.map(np.asarray, res)
+
+    def write(part):
+        top, bottom, res = part
+        for o, r in zip(outs, jax.tree.leaves(res)):
+            o[top:bottom] = r[:bottom - top]
+
+    with ThreadPoolExecutor(n) as pool:
+        first, *rest = pool.map(band, range(n))
+        # the joined result is written on the host, each band's rows by its own thread, into
+        # aligned arrays that JAX then reads in place (a jitted concatenate wrote it on one)
+        leaves, tree = jax.tree.flatten(first[2])
+        outs = [aligned_empty((h, *a.shape[1:]), a.dtype) for a in leaves]
+        list(pool.map(write, [first, *rest]))
+    return jax.tree.unflatten(tree, [jax.device_put(o) for o in outs])
 
 
 @functools.partial(jax.jit, static_argnames=("method", "static"))
@@ -210,6 +278,7 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
         res.residual.astype(out_dtype),
         res.info,
     )
+
 
 
 # L2's every-sample-used solve as a top-level CPU program, with XLA-CPU's older emitters:
