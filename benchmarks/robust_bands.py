@@ -2,10 +2,16 @@
 1280x1024, K=5 scene, in one process. Per method, median of 7 calls after a first one:
 
 - `one program`: the whole image as one call (bands switched off);
-- `library`: `photometric_stereo` as it is (row bands on threads for `irls` and `sbl`);
+- `library`: `photometric_stereo` as it is (row bands on threads for `irls` and `sbl`, one
+  per core);
 - `halves on threads`: the image cut into two halves of rows, each a call (bands off) on a
   thread of its own, joined by nothing (what banding could give a method at best on 2 cores);
-- `2x bands`: twice as many bands as cores (for `irls` and `sbl`).
+- `2x bands`: twice as many bands as cores, each on a thread of its own (for `irls` and
+  `sbl`).
+
+Then batches of `irls` and `sbl` (8 captures of 192x168, 4 of 512x640, each frame scaled by
+its own gain): `photometric_stereo_batch` as it is (captures on threads), the jitted `lax.map`
+path it took before (`vmap_size=1`), and one `photometric_stereo` call per capture.
 
 Rounds interleave the variants, so a busy machine hits them alike.
 
@@ -53,6 +59,12 @@ def main(methods=("l2", "l1", "barsky", "irls", "sbl"), rounds=7):
         def run():
             if name == "library":
                 return call(images, mask, method)
+            if name == "2x bands":
+                ps.cpu_cores = lambda: 2 * cores
+                try:
+                    return call(images, mask, method)
+                finally:
+                    ps.cpu_cores = cpu_cores
             ps._BAND_PIXELS = 1 << 40  # bands off
             try:
                 if name == "one program":
@@ -62,13 +74,6 @@ def main(methods=("l2", "l1", "barsky", "irls", "sbl"), rounds=7):
             finally:
                 ps._BAND_PIXELS = banded_pixels
 
-        if name == "2x bands":
-            def run():  # noqa: F811
-                ps.cpu_cores = lambda: 2 * cores
-                try:
-                    return call(images, mask, method)
-                finally:
-                    ps.cpu_cores = cpu_cores
         return run
 
     names = ["one program", "library", "halves on threads"]
@@ -87,7 +92,44 @@ def main(methods=("l2", "l1", "barsky", "irls", "sbl"), rounds=7):
     for (m, n), ts in times.items():
         out["seconds_median"].setdefault(m, {})[n] = statistics.median(ts)
         print(f"{m:7s} {n:18s} {statistics.median(ts):.4f} s  (min {min(ts):.4f})", flush=True)
+    out["batch_seconds_median"] = batches(rounds)
     print("written", write_json("robust_bands", out))
+
+
+def batches(rounds):
+    import jax
+
+    import jaxps
+    from jaxps.stability import render_corrupted, ring_lights
+
+    out = {}
+    for n, h, w in ((8, 192, 168), (4, 512, 640)):
+        sc = render_corrupted(jaxps.synthetic.face_like(h, w), ring_lights(5, 45.0),
+                              specular=0.6, shininess=100.0, noise=0.005, key=jax.random.key(0))
+        gains = np.random.default_rng(0).uniform(0.85, 1.15, (n, 5, 1, 1)).astype(np.float32)
+        images = np.asarray(sc.images)[None] * gains
+        lights, mask = np.asarray(sc.lights), np.asarray(sc.mask)
+        for method in ("irls", "sbl"):
+            def batch(m=method, im=images, lt=lights, mk=mask, **kw):
+                return jaxps.photometric_stereo_batch(im, lt, mask=mk, method=m, **kw)
+
+            def singles(m=method, im=images, lt=lights, mk=mask):
+                return [jaxps.photometric_stereo(c, lt, mask=mk, method=m) for c in im]
+
+            cases = {"batch": batch, "batch lax.map (vmap_size=1)": lambda: batch(vmap_size=1),
+                     "single calls": singles}
+            for fn in cases.values():
+                jax.block_until_ready(fn())
+            times = {c: [] for c in cases}
+            for _ in range(rounds):
+                for c, fn in cases.items():
+                    t = time.perf_counter()
+                    jax.block_until_ready(fn())
+                    times[c].append(time.perf_counter() - t)
+            key = f"{method} {n}x{h}x{w}"
+            out[key] = {c: statistics.median(ts) for c, ts in times.items()}
+            print(key, "  ".join(f"{c} {v:.4f} s" for c, v in out[key].items()), flush=True)
+    return out
 
 
 if __name__ == "__main__":

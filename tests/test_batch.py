@@ -3,6 +3,7 @@
 import csv
 import json
 
+import jax
 import numpy as np
 import pytest
 
@@ -33,6 +34,41 @@ def test_batch_equals_single_calls(method):
         if method == "semi_calibrated":
             np.testing.assert_allclose(batch.info["intensities"][i],
                                        single.info["intensities"], atol=1e-4)
+
+
+@pytest.mark.parametrize("method", ["irls", "sbl"])
+def test_loop_solver_batch_on_threads_equals_single_calls(method, monkeypatch):
+    """The loop solvers' CPU batch runs captures on threads (`_captures_on_threads`), here 3
+    at once; it equals single calls and the jitted `lax.map` path (`vmap_size=1`), with
+    per-capture lights, masks and sample masks, colour, and `info` stacked too."""
+    from jaxps.ps import _batch
+
+    monkeypatch.setattr(_batch, "cpu_cores", lambda: 3)
+    taken, on_threads = [], _batch._captures_on_threads
+    monkeypatch.setattr(_batch, "_captures_on_threads",
+                        lambda *a: taken.append(a[-2]) or on_threads(*a))
+    scenes, images = _captures()
+    images = np.stack([images, 0.8 * images], axis=-1)
+    lights = np.stack([np.asarray(s.lights) for s in scenes])
+    lights[1, :, 0] += 0.02
+    masks = np.stack([np.asarray(s.mask) for s in scenes])
+    samples = np.ones(images.shape[:4], bool)
+    samples[2, 1, ::2] = False
+    kw = {"mask": masks, "sample_mask": samples, "method": method}
+    batch = jaxps.photometric_stereo_batch(images, lights, **kw)
+    mapped = jaxps.photometric_stereo_batch(images, lights, vmap_size=1, **kw)
+    assert taken == [method]
+    assert batch.albedo.shape == mapped.albedo.shape == (3, 32, 26, 2)
+    assert batch.info["steps"].shape == (3, 32, 26)
+    for i in range(3):
+        single = jaxps.photometric_stereo(images[i], lights[i], mask=masks[i],
+                                          sample_mask=samples[i], method=method)
+        for ref in (single, jax.tree.map(lambda a, i=i: a[i], mapped)):
+            np.testing.assert_array_equal(batch.status[i], ref.status)
+            np.testing.assert_array_equal(batch.info["steps"][i], ref.info["steps"])
+            np.testing.assert_allclose(batch.normals[i], ref.normals, atol=1e-5)
+            np.testing.assert_allclose(batch.albedo[i], ref.albedo, atol=1e-5)
+            np.testing.assert_allclose(batch.residual[i], ref.residual, atol=1e-5)
 
 
 @pytest.mark.parametrize("colour", [False, True])

@@ -2,7 +2,8 @@
 
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
 captures of the same size into `(N, ...)` outputs. On one device the L2 solve runs capture by
-capture and writes each one's results into the stacked outputs in place (`_l2_in_place`);
+capture and writes each one's results into the stacked outputs in place (`_l2_in_place`); on
+one CPU the loop solvers (`irls`, `sbl`) run captures on threads (`_captures_on_threads`);
 other methods map the single-capture solver over the capture axis in one jitted call with
 `jax.lax.map` (in sequence, or in `jax.vmap` groups of `vmap_size`), and when several devices
 are present the capture axis is split across them with `jax.sharding` (a 1-D mesh named
@@ -15,13 +16,14 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ..core._host import aligned_empty
+from ..core._host import aligned_empty, cpu_cores, cpu_top_level
 from ..lights._directions import validate_lights
 from ._l2 import (
     INTO_MAX_PLANES,
@@ -32,7 +34,12 @@ from ._l2 import (
     l2_solve,
     l2_write,
 )
-from ._photometric_stereo import PS_METHODS, _sample_thresholds, photometric_stereo
+from ._photometric_stereo import (
+    _BANDED_SOLVERS,
+    PS_METHODS,
+    _sample_thresholds,
+    photometric_stereo,
+)
 
 __all__ = ["photometric_stereo_batch"]
 
@@ -172,6 +179,33 @@ def _l2_in_place(images, lights, mask, sample_mask, shared_lights, shared_mask, 
     return PSResult(*out)
 
 
+def _captures_on_threads(images, lights, mask, sample_mask, shared_lights, shared_mask,
+                         method, options):
+    """A batch of a loop solver (`irls`, `sbl`) on the CPU: each capture a top-level
+    `photometric_stereo` call (which solves large captures in row bands on threads), on one
+    thread per core, each result written into stacked host outputs as it arrives. Under
+    `lax.map` the captures' `while_loop`s ran one after another on one thread."""
+    n = images.shape[0]
+
+    def args(i):
+        return (images[i], lights if shared_lights else lights[i],
+                mask if shared_mask else mask[i], None if sample_mask is None else sample_mask[i])
+
+    def solve(x, lt, msk, smask):
+        return photometric_stereo(x, lt, mask=msk, sample_mask=smask, method=method, **options)
+
+    shapes, tree = jax.tree.flatten(jax.eval_shape(solve, *args(0)))
+    outs = [aligned_empty((n, *s.shape), s.dtype) for s in shapes]
+
+    def one(i):
+        for o, a in zip(outs, jax.tree.leaves(solve(*args(i)))):
+            o[i] = np.asarray(a)
+
+    with ThreadPoolExecutor(min(cpu_cores(), n)) as pool:
+        list(pool.map(one, range(n)))
+    return jax.tree.unflatten(tree, [jax.device_put(o) for o in outs])
+
+
 def photometric_stereo_batch(
     images: Float[ArrayLike, "N K H W *C"] | Sequence[Float[ArrayLike, "K H W *C"]],
     lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "N K 3"],
@@ -201,7 +235,10 @@ def photometric_stereo_batch(
       already fill the cores, and under `vmap` the L2 solver's branch on "some sample dropped"
       (a `lax.cond`) evaluates both sides. With `method="l2"` on one device each capture is
       then a call of its own that writes its results in place into the stacked outputs, and
-      `chunk` has nothing to bound. See docs/speed.md for the measured ratios.
+      `chunk` has nothing to bound. So it is with `method="irls"` or `"sbl"` on one CPU:
+      each capture is then a call of its own, one per core at a time, whose results are
+      written into stacked outputs (XLA-CPU runs their `while_loop`s on one thread). See
+      docs/speed.md for the measured ratios.
     - `out`: the `PSResult` of an earlier batch of the same shape and dtype, whose arrays are
       overwritten with this batch's results and returned (they are donated: the old result is
       unusable afterwards). For a stream of batches, pass each result back once it has been
@@ -258,6 +295,10 @@ def photometric_stereo_batch(
     if out is not None:
         raise ValueError("out: reusing a result is supported for method='l2' on one device "
                          "with vmap_size=None only")
+    if (method in _BANDED_SOLVERS and vmap_size is None and chunk is None
+            and len(jax.devices()) == 1 and cpu_top_level(images, lights, mask, sample_mask)):
+        return _captures_on_threads(images, lights, mask, sample_mask, shared_lights,
+                                    shared_mask, method, options)
     fn = _batched_fn(method, options, shared_lights, shared_mask,
                      "all" if len(jax.devices()) > 1 else vmap_size)
     devices = jax.devices()
