@@ -165,14 +165,22 @@ def test_chunked_equals_unchunked(scene8, monkeypatch):
 @pytest.mark.parametrize("method", ["irls", "sbl"])
 def test_row_bands_on_threads_equal_one_call(scene8, method, monkeypatch):
     # A top-level CPU call of the loop solvers runs row bands on threads; 64 rows in 3 bands
-    # of 22 (the last padded with 2 masked rows), against the same solve traced in one call.
+    # of 22 (the last padded with 2 masked rows), against the same call in one program. (A
+    # call traced into a caller's jit with the lights as constants is not the reference: XLA
+    # folds the light products, and IRLS's stop moves by a step in some pixels.)
     from jaxps.ps import _photometric_stereo
 
-    monkeypatch.setattr(_photometric_stereo, "_BAND_PIXELS", 1)
     monkeypatch.setattr(_photometric_stereo, "cpu_cores", lambda: 3)
     bands, banded_call = [], _photometric_stereo._in_row_bands
     monkeypatch.setattr(_photometric_stereo, "_in_row_bands",
                         lambda *a: bands.append(a[-1]) or banded_call(*a))
+
+    def both(images, lights, **kw):
+        monkeypatch.setattr(_photometric_stereo, "_BAND_PIXELS", 1 << 40)
+        one = jaxps.photometric_stereo(images, lights, method=method, **kw)
+        monkeypatch.setattr(_photometric_stereo, "_BAND_PIXELS", 1)
+        return jaxps.photometric_stereo(images, lights, method=method, **kw), one
+
     k, h, w = scene8.images.shape
     rgb = np.stack([scene8.images, 0.7 * scene8.images], axis=-1)
     near = np.broadcast_to(np.asarray(scene8.lights)[:, None, None], (k, h, w, 3)).copy()
@@ -180,24 +188,31 @@ def test_row_bands_on_threads_equal_one_call(scene8, method, monkeypatch):
     near /= np.linalg.norm(near, axis=-1, keepdims=True)
     drop = np.ones((k, h, w), bool)
     drop[0, ::3] = False
-    for images, lights, samples in ((scene8.images, scene8.lights, None), (rgb, near, drop)):
-        kw = {"mask": scene8.mask, "sample_mask": samples, "method": method}
-        banded = jaxps.photometric_stereo(images, lights, **kw)
-        one = jax.jit(lambda i, lt, kw=kw: jaxps.photometric_stereo(i, lt, **kw))(images, lights)
+    cases = ((scene8.images, scene8.lights, {"mask": scene8.mask}),
+             (rgb, near, {"mask": scene8.mask, "sample_mask": drop}),
+             (scene8.images, scene8.lights, {}))  # no mask: every pixel
+    for images, lights, kw in cases:
+        banded, one = both(images, lights, **kw)
         assert banded.normals.shape == one.normals.shape == (h, w, 3)
         assert banded.albedo.shape == one.albedo.shape
         assert jax.tree.structure(banded) == jax.tree.structure(one)
         np.testing.assert_array_equal(np.asarray(banded.status), np.asarray(one.status))
         np.testing.assert_array_equal(np.asarray(banded.n_used), np.asarray(one.n_used))
+        np.testing.assert_array_equal(np.asarray(banded.info["steps"]),
+                                      np.asarray(one.info["steps"]))
         assert float(jaxps.angular_error(banded.normals, one.normals).max()) < 1e-3
         np.testing.assert_allclose(np.asarray(banded.albedo), np.asarray(one.albedo),
-                                   atol=1e-4)
+                                   atol=1e-5)
         np.testing.assert_allclose(np.asarray(banded.residual), np.asarray(one.residual),
-                                   atol=1e-4)
-        assert np.abs(np.asarray(banded.info["steps"]) - np.asarray(one.info["steps"])).max() <= 1
+                                   atol=1e-5)
         masked = np.asarray(banded.status) == jaxps.Status.MASKED
-        np.testing.assert_array_equal(masked, ~np.asarray(scene8.mask))
-    assert bands == [3, 3]
+        np.testing.assert_array_equal(masked, ~np.asarray(kw.get("mask", np.ones((h, w), bool))))
+    assert bands == [3, 3, 3]
+    # an option's error comes back from a band's thread; one row is one band, one program
+    with pytest.raises(ValueError, match="max_steps"):
+        jaxps.photometric_stereo(scene8.images, scene8.lights, method=method, max_steps=0)
+    one_row = jaxps.photometric_stereo(scene8.images[:, :1], scene8.lights, method=method)
+    assert one_row.normals.shape == (1, w, 3) and bands == [3, 3, 3, 3]
 
 
 def test_step_limit_reports_not_converged(scene8):

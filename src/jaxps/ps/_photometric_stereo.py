@@ -189,7 +189,7 @@ def photometric_stereo(
     elif branch == "all_used":
         run = _run_older_emitters
     elif method in _BANDED_SOLVERS and not dynamic:
-        bands = min(cpu_cores(), h * w // _BAND_PIXELS)
+        bands = min(cpu_cores(), h * w // _BAND_PIXELS, h)
         if bands > 1 and cpu_top_level(images, lights, mask, sample_mask):
             return _in_row_bands(images, lights, mask, sample_mask, thresholds, method,
                                  static, bands)
@@ -204,7 +204,7 @@ def _in_row_bands(images, lights, mask, sample_mask, thresholds, method, static,
     is compiled for all of them. Bands are numpy views of host arrays (CPU arrays are read in
     place), which `_run` takes as arguments.
     """
-    h = images.shape[1]
+    h, w = images.shape[1:3]
     rows = -(-h // n)
     images, lights = np.asarray(images), np.asarray(lights)
     mask = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
