@@ -295,8 +295,8 @@ def photometric_stereo_batch(
     if out is not None:
         raise ValueError("out: reusing a result is supported for method='l2' on one device "
                          "with vmap_size=None only")
-    if (method in _BANDED_SOLVERS and vmap_size is None and chunk is None
-            and len(jax.devices()) == 1 and cpu_top_level(images, lights, mask, sample_mask)):
+    if (method in _BANDED_SOLVERS and vmap_size is None and len(jax.devices()) == 1
+            and cpu_top_level(images, lights, mask, sample_mask)):
         return _captures_on_threads(images, lights, mask, sample_mask, shared_lights,
                                     shared_mask, method, options)
     fn = _batched_fn(method, options, shared_lights, shared_mask,

@@ -280,7 +280,6 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
     )
 
 
-
 # L2's every-sample-used solve as a top-level CPU program, with XLA-CPU's older emitters:
 # 7.2-8.3 against 10.3-10.8 ms at 1 MP, K=5, in three runs of
 # `benchmarks/bench_l2_programs.py`. The flag pass and the weighted solve were no faster with
