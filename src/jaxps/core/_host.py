@@ -56,6 +56,32 @@ def cpu_cores() -> int:
         return os.cpu_count() or 1
 
 
+def fill_on_threads(shapes, parts, threads: int):
+    """Aligned host arrays of the pytree `shapes` (`jax.ShapeDtypeStruct` leaves), filled on
+    `threads` threads and returned as JAX arrays that read them in place.
+
+    `parts`: callables, each returning `(index, tree)` whose leaves are written at `[index]`
+    of the matching arrays, by the thread that computed them. For work XLA-CPU runs on one
+    thread (a `while_loop`), split into independent calls: the calls run at once, and the
+    joined result is written by several threads instead of a jitted concatenate on one.
+    """
+    from concurrent.futures import ThreadPoolExecutor
+
+    import jax
+
+    leaves, tree = jax.tree.flatten(shapes)
+    outs = [aligned_empty(s.shape, s.dtype) for s in leaves]
+
+    def run(part):
+        index, result = part()
+        for out, a in zip(outs, jax.tree.leaves(result)):
+            out[index] = np.asarray(a)
+
+    with ThreadPoolExecutor(threads) as pool:
+        list(pool.map(run, parts))
+    return jax.tree.unflatten(tree, [jax.device_put(o) for o in outs])
+
+
 def cpu_top_level(*trees) -> bool:
     """Whether a jitted call with these arguments runs as its own program on the CPU: no
     argument is a tracer (JAX accepts `compiler_options` on top-level jits only; inside a

@@ -16,14 +16,13 @@ from __future__ import annotations
 
 import functools
 from collections.abc import Sequence
-from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ..core._host import aligned_empty, cpu_cores, cpu_top_level
+from ..core._host import aligned_empty, cpu_cores, cpu_top_level, fill_on_threads
 from ..lights._directions import validate_lights
 from ._l2 import (
     INTO_MAX_PLANES,
@@ -183,8 +182,9 @@ def _captures_on_threads(images, lights, mask, sample_mask, shared_lights, share
                          method, options):
     """A batch of a loop solver (`irls`, `sbl`) on the CPU: each capture a top-level
     `photometric_stereo` call (which solves large captures in row bands on threads), on one
-    thread per core, each result written into stacked host outputs as it arrives. Under
-    `lax.map` the captures' `while_loop`s ran one after another on one thread."""
+    thread per core, each result written into stacked host outputs as it arrives
+    (`core._host.fill_on_threads`). Under `lax.map` the captures' `while_loop`s ran one after
+    another on one thread."""
     n = images.shape[0]
 
     def args(i):
@@ -194,16 +194,10 @@ def _captures_on_threads(images, lights, mask, sample_mask, shared_lights, share
     def solve(x, lt, msk, smask):
         return photometric_stereo(x, lt, mask=msk, sample_mask=smask, method=method, **options)
 
-    shapes, tree = jax.tree.flatten(jax.eval_shape(solve, *args(0)))
-    outs = [aligned_empty((n, *s.shape), s.dtype) for s in shapes]
-
-    def one(i):
-        for o, a in zip(outs, jax.tree.leaves(solve(*args(i)))):
-            o[i] = np.asarray(a)
-
-    with ThreadPoolExecutor(min(cpu_cores(), n)) as pool:
-        list(pool.map(one, range(n)))
-    return jax.tree.unflatten(tree, [jax.device_put(o) for o in outs])
+    shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct((n, *s.shape), s.dtype),
+                          jax.eval_shape(solve, *args(0)))
+    parts = [lambda i=i: (i, solve(*args(i))) for i in range(n)]
+    return fill_on_threads(shapes, parts, min(cpu_cores(), n))
 
 
 def photometric_stereo_batch(

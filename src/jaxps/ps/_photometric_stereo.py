@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import functools
 import importlib
-from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import jax.numpy as jnp
@@ -20,9 +19,9 @@ from jaxtyping import ArrayLike, Bool, Float
 from ..core._host import (
     OLDER_EMITTERS,
     CpuTuned,
-    aligned_empty,
     cpu_cores,
     cpu_top_level,
+    fill_on_threads,
     to_device,
 )
 from ..lights._directions import validate_lights
@@ -198,7 +197,8 @@ def photometric_stereo(
 
 
 def _in_row_bands(images, lights, mask, sample_mask, thresholds, method, static, n):
-    """`_run` on `n` bands of rows, each on its own thread, joined into one `PSResult`.
+    """`_run` on `n` bands of rows, each on its own thread, joined into one `PSResult`
+    (`core._host.fill_on_threads`).
 
     Every band has the same height (the last one padded with masked rows), so one program
     is compiled for all of them. Bands are numpy views of host arrays (CPU arrays are read in
@@ -210,8 +210,11 @@ def _in_row_bands(images, lights, mask, sample_mask, thresholds, method, static,
     mask = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
     sample_mask = None if sample_mask is None else np.asarray(sample_mask, bool)
 
-    def band(i):
-        top, bottom = i * rows, min((i + 1) * rows, h)
+    def span(i):
+        return i * rows, min((i + 1) * rows, h)
+
+    def args(i):
+        top, bottom = span(i)
         pad = rows - (bottom - top)
 
         def cut(a, axis, **kw):
@@ -222,25 +225,20 @@ def _in_row_bands(images, lights, mask, sample_mask, thresholds, method, static,
                 a = np.pad(a, widths, **kw)
             return a
 
-        band_lights = lights if lights.ndim == 2 else cut(lights, 1, mode="edge")
-        band_samples = None if sample_mask is None else cut(sample_mask, 1)
-        res = _run(cut(images, 1), band_lights, cut(mask, 0), band_samples, thresholds, {},
-                   method=method, static=static)
-        return top, bottom, jax.tree.map(np.asarray, res)
+        return (cut(images, 1), lights if lights.ndim == 2 else cut(lights, 1, mode="edge"),
+                cut(mask, 0), None if sample_mask is None else cut(sample_mask, 1))
 
-    def write(part):
-        top, bottom, res = part
-        for o, r in zip(outs, jax.tree.leaves(res)):
-            o[top:bottom] = r[:bottom - top]
+    def solve(x, lt, m, samples):
+        return _run(x, lt, m, samples, thresholds, {}, method=method, static=static)
 
-    with ThreadPoolExecutor(n) as pool:
-        first, *rest = pool.map(band, range(n))
-        # the joined result is written on the host, each band's rows by its own thread, into
-        # aligned arrays that JAX then reads in place (a jitted concatenate wrote it on one)
-        leaves, tree = jax.tree.flatten(first[2])
-        outs = [aligned_empty((h, *a.shape[1:]), a.dtype) for a in leaves]
-        list(pool.map(write, [first, *rest]))
-    return jax.tree.unflatten(tree, [jax.device_put(o) for o in outs])
+    def band(i):
+        top, bottom = span(i)
+        return slice(top, bottom), jax.tree.map(lambda a: np.asarray(a)[:bottom - top],
+                                                solve(*args(i)))
+
+    shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct((h, *s.shape[1:]), s.dtype),
+                          jax.eval_shape(solve, *args(0)))
+    return fill_on_threads(shapes, [functools.partial(band, i) for i in range(n)], n)
 
 
 @functools.partial(jax.jit, static_argnames=("method", "static"))
