@@ -315,6 +315,7 @@ def relight_speed(models, normals, albedo, rounds=15):
         _predict_one,
         _relight,
         _support_weight,
+        _tanh,
     )
     from jaxps.reflectance._features import (
         _angles_elementwise,
@@ -377,6 +378,7 @@ def relight_speed(models, normals, albedo, rounds=15):
         "piece_atan2_xla": partial_jit(jnp.arctan2, jnp.abs(ti), tr - 0.5),
         "piece_atan2_polynomial": partial_jit(_atan2_nonneg, jnp.abs(ti), tr - 0.5),
         "piece_tanh_xla": partial_jit(jnp.tanh, ti),
+        "piece_tanh_rational (the relight kernel's)": partial_jit(_tanh, ti),
         "piece_mlp_elementwise": partial_jit(_mlp_elementwise, params, rows),
         "piece_mlp_gemm_feature_major": partial_jit(gemm, params, z),
         "piece_mlp_vmap_per_sample (previous)": partial_jit(

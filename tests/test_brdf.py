@@ -135,6 +135,18 @@ def test_atan2_polynomial_matches_numpy():
     assert got64 is None or np.allclose(got64, np.arctan2(y, x), atol=1e-15)
 
 
+def test_relight_tanh_matches_numpy():
+    from jaxps.reflectance._brdf import _tanh
+
+    x = np.concatenate([np.linspace(-12, 12, 20001), 10.0 ** np.linspace(-9, 1, 2001),
+                        -(10.0 ** np.linspace(-9, 1, 2001)), [0.0]]).astype(np.float32)
+    got = np.asarray(jax.jit(_tanh)(jnp.asarray(x)))
+    ref = np.tanh(x.astype(np.float64))
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, ref, rtol=4e-7, atol=4e-7)
+    assert np.all(np.abs(got) <= 1) and got[-1] == 0
+
+
 def test_support_weight_matches_scipy_map_coordinates():
     import scipy.ndimage
 

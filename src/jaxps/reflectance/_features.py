@@ -66,10 +66,12 @@ def _atan2_nonneg(y, x):
         return jnp.arctan2(y, x)
     dtype = y.dtype
     ax = jnp.abs(x)
-    big = jnp.maximum(ax, y)
-    a = jnp.minimum(ax, y) / jnp.where(big > 0, big, jnp.ones((), dtype))  # in [0, 1]
-    mid = a > 0.41421356  # tan(pi/8): reduce to (a - 1) / (a + 1), offset pi/4
-    t = jnp.where(mid, (a - 1) / (a + 1), a)
+    big, small = jnp.maximum(ax, y), jnp.minimum(ax, y)  # a = small / big in [0, 1]
+    mid = small > 0.41421356 * big  # a > tan(pi/8): reduce to (a - 1) / (a + 1), offset pi/4
+    # one reciprocal times a numerator, not a division: XLA-CPU gives a division with more
+    # than one user a pass over memory of its own, and fuses a reciprocal feeding one multiply
+    den = jnp.where(mid, small + big, jnp.where(big > 0, big, jnp.ones((), dtype)))
+    t = jnp.where(mid, small - big, small) * (1 / den)
     z = t * t
     poly = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z
             - 3.33329491539e-1) * z * t + t
@@ -98,10 +100,10 @@ def _angles_elementwise(normals, lights):
     $l_t = l - (n \\cdot l) n$, $v_t = v - n_z n$. Normals and lights are normalised here.
     """
     dtype = normals.dtype
-    n = normals.reshape(-1, 3).T  # (3, P): one transpose, then unit-stride rows
-    nx, ny, nz = n[0:1], n[1:2], n[2:3]  # (1, P)
-    norm = jnp.maximum(jnp.sqrt(nx * nx + ny * ny + nz * nz), jnp.asarray(1e-12, dtype))
-    nx, ny, nz = nx / norm, ny / norm, nz / norm
+    # (1, P) planes read in place: a transpose to (3, P) would be a pass of its own
+    nx, ny, nz = (normals[..., c].reshape(1, -1) for c in range(3))
+    inv = 1 / jnp.maximum(jnp.sqrt(nx * nx + ny * ny + nz * nz), jnp.asarray(1e-12, dtype))
+    nx, ny, nz = nx * inv, ny * inv, nz * inv
     lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
     lx, ly, lz = lights[:, 0:1], lights[:, 1:2], lights[:, 2:3]  # (K, 1)
     ndl = nx * lx + ny * ly + nz * lz
