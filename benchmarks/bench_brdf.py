@@ -21,7 +21,6 @@ with the previous per-sample relight kernel and the pieces of the new one timed 
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import pathlib
@@ -314,6 +313,7 @@ def relight_speed(models, normals, albedo, rounds=15):
         _mlp_elementwise,
         _predict_one,
         _relight,
+        _relight_args,
         _support_weight,
         _tanh,
     )
@@ -368,7 +368,7 @@ def relight_speed(models, normals, albedo, rounds=15):
         "render_lambertian": lambda: jaxps.render_lambertian(normals, albedo, light),
         # the same kernel compiled without its 512-bit vector preference
         "relight_mlp_ratio_default_vector_width (before _WIDE_VECTORS)": lambda: _relight.plain(
-            dataclasses.replace(m, fit=None), normals, albedo, light),
+            *_relight_args(m), normals, albedo, light),
         "relight_mlp_ratio_per_sample (previous kernel)": partial_jit(
             relight_per_sample, normals, albedo, light),
         "piece_features_elementwise (theta_i, theta_r, delta_alpha)": partial_jit(

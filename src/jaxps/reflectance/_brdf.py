@@ -382,7 +382,7 @@ def _check_lights(lights, dtype):
         raise ValueError(
             f"lights {below.tolist()} are at or below the horizon (l_z <= 0): a light behind "
             "the image plane cannot light the visible surface")
-    return jnp.asarray(lights, dtype)
+    return lights.astype(dtype)  # numpy: a jit takes it as is; jnp.asarray dispatches a convert
 
 
 def fit_brdf(
@@ -727,47 +727,58 @@ def relight(
         out = _parametric.render(model.method, model.params, normals, albedo, lights)
         return out if mask is None else jnp.where(jnp.asarray(mask, bool)[None], out,
                                                   jnp.zeros((), out.dtype))
-    # the fit report is a static field of the model: drop it so that models that differ only in
-    # their report (every new fit) share one compiled relight
-    out = _relight(dataclasses.replace(model, fit=None), normals, albedo, lights)
+    out = _relight(*_relight_args(model), normals, albedo, lights)
     if mask is not None:
         out = jnp.where(jnp.asarray(mask, bool)[None], out, jnp.zeros((), out.dtype))
     return out
 
 
-def _relight_kernel(model, normals, albedo, lights):
+def _relight_args(model):
+    """The static settings and the arrays of `model` that `_relight_kernel` reads. A plain
+    `jit` of these dispatches in about 0.25 ms, where `equinox.filter_jit` of the whole model
+    (less its fit report, a static field that would recompile every new fit) took about
+    0.6 ms a call (a 40x40 relight, on this project's machine)."""
+    return ((model.method, model.bound, model.cell, model.lambertian_base, model.use_xy),
+            (model.params, model.box_lo, model.box_hi, model.support, model.rho_ref))
+
+
+def _relight_kernel(config, arrays, normals, albedo, lights):
     """`(K, H, W)` images, feature-major: every image-sized quantity is a `(K, P)` array
     (P = H W; per-pixel terms `(1, P)`), so the whole render is elementwise work that XLA fuses
     and vectorises. The same model as `_predict_one` (tests/test_brdf.py checks it against a
     numpy reference): the small matrix products of the MLP are unrolled into multiply-adds over
     whole arrays (a per-sample `w @ z` under `vmap`, or a `(10, 10) @ (10, P)` GEMM, were 3-10x
     slower on the CPU), and cos θi is n·l."""
+    method, bound, cell, lambertian_base, use_xy = config
+    params, box_lo, box_hi, support, rho_ref = arrays
     dtype = normals.dtype
     k = lights.shape[0]
     h, w, _ = normals.shape
     theta_i, theta_r, delta, cos_i = _angles_elementwise(normals, lights)
     rho = albedo.reshape(1, -1)
     lambert = rho * jnp.maximum(cos_i, 0)
-    if model.method == "lambertian":
+    if method == "lambertian":
         return lambert.reshape(k, h, w)
-    params = jax.tree.map(lambda a: a.astype(dtype), model.params)
-    box_lo, box_hi = model.box_lo.astype(dtype), model.box_hi.astype(dtype)
+    params = jax.tree.map(lambda a: a.astype(dtype), params)
+    box_lo, box_hi = box_lo.astype(dtype), box_hi.astype(dtype)
     span = jnp.maximum(box_hi - box_lo, jnp.asarray(1e-6, dtype))
     u = [theta_i - theta_r, theta_i + theta_r, delta]
-    if model.lambertian_base:
+    if lambertian_base:
         u = [jnp.clip(u[j], box_lo[j], box_hi[j]) for j in range(3)]
     z = [2 * (u[j] - box_lo[j]) / span[j] - 1 for j in range(3)]
-    xy = pixel_coordinates(h, w, dtype).reshape(1, -1, 2)
-    if not model.use_xy:
-        xy = jnp.zeros_like(xy)
-    g = _mlp_elementwise(params, [*z, xy[..., 0], xy[..., 1]])
-    amp = rho if model.method == "mlp_ratio" else model.rho_ref.astype(dtype)
-    if not model.lambertian_base:
+    if use_xy:  # a row and a column broadcast in the kernel, not two image constants
+        xy = pixel_coordinates(h, w, dtype)
+        x = jnp.broadcast_to(xy[0, :, 0][None], (h, w)).reshape(1, -1)
+        y = jnp.broadcast_to(xy[:, 0, 1][:, None], (h, w)).reshape(1, -1)
+    else:
+        x = y = jnp.zeros((1, 1), dtype)
+    g = _mlp_elementwise(params, [*z, x, y])
+    amp = rho if method == "mlp_ratio" else rho_ref.astype(dtype)
+    if not lambertian_base:
         out = amp * g
     else:
-        weight = _support_weight(model.support.astype(dtype), (theta_i, theta_r, delta),
-                                 model.cell)
-        out = lambert + amp * weight * model.bound * _tanh(g)
+        weight = _support_weight(support.astype(dtype), (theta_i, theta_r, delta), cell)
+        out = lambert + amp * weight * bound * _tanh(g)
     return jnp.broadcast_to(out, (k, h * w)).reshape(k, h, w)
 
 
@@ -777,7 +788,7 @@ def _relight_kernel(model, normals, albedo, lights):
 # (`benchmarks/bench_brdf.py --part speed`, whose "default vector width" row calls `.plain`).
 # A preference only: CPUs without AVX-512 keep their width, other backends ignore it.
 _WIDE_VECTORS = {"xla_cpu_prefer_vector_width": 512}
-_relight = CpuTuned(_relight_kernel, _WIDE_VECTORS, jit=eqx.filter_jit)
+_relight = CpuTuned(_relight_kernel, _WIDE_VECTORS, static_argnums=0)
 
 
 def _mlp_elementwise(params, rows):
