@@ -359,9 +359,13 @@ def relight_speed(models, normals, albedo, rounds=15):
             z = jnp.tanh(wt @ z + b[:, None])
         return (p[-1][0] @ z + p[-1][1][:, None])[0]
 
+    small_normals, small_albedo = normals[:40, :40], albedo[:40, :40]
     cases = {
         "relight_mlp": lambda: jaxps.relight(models["mlp"], normals, albedo, light),
         "relight_mlp_ratio": lambda: jaxps.relight(m, normals, albedo, light),
+        # a 40x40 image: what is left is the host's work per call (checks, dispatch)
+        "relight_mlp_ratio_40x40 (host time)": lambda: jaxps.relight(m, small_normals,
+                                                                    small_albedo, light),
         "relight_lambertian": lambda: jaxps.relight(models["lambertian"], normals, albedo, light),
         "relight_wrap_ggx (the default)": lambda: jaxps.relight(models["wrap_ggx"], normals,
                                                                 albedo, light),

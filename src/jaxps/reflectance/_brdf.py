@@ -221,24 +221,30 @@ def _support_weight(support, angles, cell):
     0 one cell away from it. `angles` is a sequence of three arrays of one shape (or scalars).
 
     Cell centres sit at (j + 1/2) `cell`; indices are clamped to the grid (the semantics of
-    `jax.scipy.ndimage.map_coordinates(support, angles / cell - 1/2, order=1, mode="nearest")`,
-    written as eight gathers from the flat grid so it stays one fused elementwise kernel).
+    `jax.scipy.ndimage.map_coordinates(support, angles / cell - 1/2, order=1, mode="nearest")`).
+    The grid is padded by one edge cell on every side, so the clamp is one `clip` of the lower
+    corner per axis and the eight corners are one flat index plus constant offsets: eight
+    gathers in the same fused elementwise kernel (clamping each corner's three indices apart
+    made a 700x850 MLP relight about 0.6 ms slower).
     """
     shape = support.shape
-    flat = support.reshape(-1)
-    nodes = []
-    for a, size in zip(angles, shape):
+    padded = jnp.pad(support, 1, mode="edge")
+    flat = padded.reshape(-1)
+    strides = (padded.shape[1] * padded.shape[2], padded.shape[2], 1)
+    base, weights = 0, []
+    for a, size, stride in zip(angles, shape, strides):
         c = a / cell - 0.5
         lower = jnp.floor(c)
         upper_weight = c - lower
-        i = lower.astype(jnp.int32)
-        nodes.append(((jnp.clip(i, 0, size - 1), 1 - upper_weight),
-                      (jnp.clip(i + 1, 0, size - 1), upper_weight)))
+        # the lower corner, -1..size-1 (beyond, both corners clamp alike), is padded row 0..size
+        base = base + (jnp.clip(lower.astype(jnp.int32), -1, size - 1) + 1) * stride
+        weights.append((1 - upper_weight, upper_weight))
     out = None
-    for i0, w0 in nodes[0]:
-        for i1, w1 in nodes[1]:
-            for i2, w2 in nodes[2]:
-                term = (w0 * w1 * w2) * flat[(i0 * shape[1] + i1) * shape[2] + i2]
+    for b0, w0 in enumerate(weights[0]):
+        for b1, w1 in enumerate(weights[1]):
+            for b2, w2 in enumerate(weights[2]):
+                offset = b0 * strides[0] + b1 * strides[1] + b2
+                term = (w0 * w1 * w2) * flat[base + offset]
                 out = term if out is None else out + term
     return out
 
