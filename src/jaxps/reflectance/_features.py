@@ -68,8 +68,9 @@ def _atan2_nonneg(y, x):
     ax = jnp.abs(x)
     big, small = jnp.maximum(ax, y), jnp.minimum(ax, y)  # a = small / big in [0, 1]
     mid = small > 0.41421356 * big  # a > tan(pi/8): reduce to (a - 1) / (a + 1), offset pi/4
-    # one reciprocal times a numerator, not a division: XLA-CPU gives a division with more
-    # than one user a pass over memory of its own, and fuses a reciprocal feeding one multiply
+    # a numerator times one reciprocal: XLA-CPU writes a quotient `a / b` of two computed
+    # arrays to memory, as a pass of its own, when it has more than one user (as `t` has);
+    # `1 / b` (a constant numerator) stays fused
     den = jnp.where(mid, small + big, jnp.where(big > 0, big, jnp.ones((), dtype)))
     t = jnp.where(mid, small - big, small) * (1 / den)
     z = t * t
