@@ -1,0 +1,74 @@
+"""Which elementwise expressions XLA-CPU compiles into one loop over memory, and which it splits.
+
+    PYTHONPATH=src python benchmarks/fusion_rules.py [--out benchmarks/results/fusion_rules.json]
+
+Each probe is one jitted expression of two `(1, 595000)` float32 inputs (the pixels of a
+700x850 image) with one output. It is compiled (not run), and the script counts the loop
+fusions over the whole image in the compiled HLO: 1 means one pass over memory; each extra one
+is an intermediate written to memory and read back. docs/brdf.md ("Speed") uses these rules;
+the relight kernel's own counts come from its HLO in the same way.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+P = 595_000
+TABLE = np.random.default_rng(0).uniform(size=64).astype(np.float32)  # a small lookup table
+
+
+def _lookup(a):
+    return jnp.asarray(TABLE)[jnp.clip(a.astype(jnp.int32), 0, 63)]
+
+
+PROBES = {
+    # a quotient of two computed arrays, used more than once: split
+    "a / b, used twice": lambda a, b: (a / b) * 2 + (a / b) * (a / b),
+    "a / b, used once": lambda a, b: (a / b) * 2 + a,
+    "a * (1 / b), the product used twice": lambda a, b: (a * (1 / b)) * 2
+    + (a * (1 / b)) * (a * (1 / b)),
+    "1 / b, used three times": lambda a, b: (1 / b) * a + (1 / b) * (1 / b) * 3,
+    "2 / b, used three times": lambda a, b: (2 / b) * a + (2 / b) * (2 / b) * 3,
+    "a / b inside where, used three times": lambda a, b: jnp.where(
+        a / b > 0.4, (a / b - 1) / (a / b + 1), a / b),
+    "sqrt(a), used three times": lambda a, b: jnp.sqrt(a) * 2 + jnp.sqrt(a) * b
+    + jnp.maximum(jnp.sqrt(a), b),
+    "rsqrt(a), used twice": lambda a, b: jax.lax.rsqrt(a) * 2 + jax.lax.rsqrt(a) * b,
+    "exp(a), used three times": lambda a, b: jnp.exp(a) * 2 + jnp.exp(a) * b
+    + jnp.maximum(jnp.exp(a), b),
+    "tanh(a * b + i), five of them summed": lambda a, b: sum(
+        jnp.tanh(i * (a * b) + b) for i in range(5)),
+    "a gather, used twice": lambda a, b: (lambda g: g * a + g * g)(_lookup(a)),
+    "a gather, used once": lambda a, b: _lookup(a) * b,
+}
+
+
+def image_loops(fn) -> int:
+    x = jnp.ones((1, P), jnp.float32)
+    text = jax.jit(fn).lower(x, x).compile().as_text()
+    return len(re.findall(rf"= \S+\[1,{P}\]\S* fusion\(", text))
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", type=Path,
+                        default=Path(__file__).parent / "results" / "fusion_rules.json")
+    args = parser.parse_args()
+    res = {"jax": jax.__version__, "backend": jax.default_backend(), "pixels": P, "loops": {}}
+    for name, fn in PROBES.items():
+        res["loops"][name] = image_loops(fn)
+        print(f"{res['loops'][name]:2d}  {name}", flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(res, indent=1))
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
