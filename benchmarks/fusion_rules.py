@@ -5,8 +5,8 @@
 Each probe is one jitted expression of two `(1, 595000)` float32 inputs (the pixels of a
 700x850 image) with one output. It is compiled (not run), and the script counts the loop
 fusions over the whole image in the compiled HLO: 1 means one pass over memory; each extra one
-is an intermediate written to memory and read back. docs/brdf.md ("Speed") uses these rules;
-the relight kernel's own counts come from its HLO in the same way.
+is an intermediate written to memory and read back. docs/brdf.md ("Speed") uses these rules.
+The last line counts the same for `jaxps.relight` of an MLP model at 700x850.
 """
 
 from __future__ import annotations
@@ -56,6 +56,26 @@ def image_loops(fn) -> int:
     return len(re.findall(rf"= \S+\[1,{P}\]\S* fusion\(", text))
 
 
+def relight_loops(h=700, w=850) -> int:
+    """Loops over the image in `jaxps.relight` of an `mlp_ratio` model (700x850, one light),
+    traced whole inside one `jit`, so that the count is the same for any version of the
+    library."""
+    import jaxps
+
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(h, w),
+                                         jaxps.synthetic.scanner_lights(20.0))
+    model = jaxps.fit_brdf(scene.images, scene.normals, scene.albedo,
+                           jaxps.synthetic.scanner_lights(20.0), mask=scene.mask,
+                           method="mlp_ratio", n_samples=2000, max_steps=2,
+                           key=jax.random.key(0))
+    light = jnp.asarray(jaxps.lights_from_angles([30.0], [10.0]), jnp.float32)
+    fn = jax.jit(lambda n, a, l: jaxps.relight(model, n, a, l))
+    text = fn.lower(jnp.asarray(scene.normals), jnp.asarray(scene.albedo),
+                    light).compile().as_text()
+    return len(re.findall(rf"= \S+\[(1,)?{h * w}\]\S* fusion\(|= \S+\[(1,)?{h},{w}\]\S* "
+                          r"fusion\(", text))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path,
@@ -65,6 +85,8 @@ def main():
     for name, fn in PROBES.items():
         res["loops"][name] = image_loops(fn)
         print(f"{res['loops'][name]:2d}  {name}", flush=True)
+    res["relight_mlp_ratio_700x850_loops"] = relight_loops()
+    print(f"{res['relight_mlp_ratio_700x850_loops']:2d}  jaxps.relight, mlp_ratio, 700x850")
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(res, indent=1))
     print(f"wrote {args.out}")

@@ -224,8 +224,8 @@ def _support_weight(support, angles, cell):
     `jax.scipy.ndimage.map_coordinates(support, angles / cell - 1/2, order=1, mode="nearest")`).
     The grid is padded by one edge cell on every side, so the clamp is one `clip` of the lower
     corner per axis and the eight corners are one flat index plus constant offsets: eight
-    gathers in the same fused elementwise kernel (clamping each corner's three indices apart
-    made a 700x850 MLP relight about 0.6 ms slower).
+    gathers in the same fused elementwise kernel, with less index arithmetic than clamping
+    each corner's three indices apart (docs/brdf.md, "Speed").
     """
     shape = support.shape
     padded = jnp.pad(support, 1, mode="edge")
@@ -812,8 +812,8 @@ def _mlp_elementwise(params, rows):
 
 
 # Eigen's float32 tanh (`ptanh_float`): odd degree-13 over even degree-6 polynomial on
-# [-7.9053, 7.9053], where tanh is 1 to float32 precision. Largest error 3.6e-7 on [-10, 10]
-# (XLA's own tanh: 2.7e-7).
+# [-7.9053, 7.9053], where tanh is 1 to float32 precision; within 4e-7 of numpy
+# (tests/test_brdf.py).
 _TANH_P = (-2.76076847742355e-16, 2.00018790482477e-13, -8.60467152213735e-11,
            5.12229709037114e-08, 1.48572235717979e-05, 6.37261928875436e-04,
            4.89352455891786e-03)
@@ -823,8 +823,8 @@ _TANH_Q = (1.19825839466702e-06, 1.18534705686654e-04, 2.26843463243900e-03,
 
 def _tanh(x):
     """tanh for the relight kernel: float32 uses the rational form above, times a reciprocal,
-    which XLA-CPU fuses and vectorises in line (its own tanh made the 700x850 MLP relight
-    about 0.5 ms slower, `bench_brdf.py --part speed`); other dtypes `jnp.tanh`."""
+    which XLA-CPU fuses and vectorises in line, faster than its own tanh (`bench_brdf.py
+    --part speed`, the tanh pieces); other dtypes `jnp.tanh`."""
     if x.dtype != jnp.float32:
         return jnp.tanh(x)
     x = jnp.clip(x, -7.90531110763549805, 7.90531110763549805)
