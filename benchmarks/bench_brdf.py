@@ -360,6 +360,12 @@ def relight_speed(models, normals, albedo, rounds=15):
         return (p[-1][0] @ z + p[-1][1][:, None])[0]
 
     small_normals, small_albedo = normals[:40, :40], albedo[:40, :40]
+    pixel_lights = jnp.broadcast_to(light[:, None, None, :], (1, h, w, 3)) + 0  # (1, H, W, 3)
+
+    def render_einsum(n, a, lights):  # render_lambertian before it was written out
+        eq = "kc,hwc->khw" if lights.ndim == 2 else "khwc,hwc->khw"
+        return jnp.maximum(jnp.einsum(eq, lights, n), 0) * a[None]
+
     cases = {
         "relight_mlp": lambda: jaxps.relight(models["mlp"], normals, albedo, light),
         "relight_mlp_ratio": lambda: jaxps.relight(m, normals, albedo, light),
@@ -370,6 +376,11 @@ def relight_speed(models, normals, albedo, rounds=15):
         "relight_wrap_ggx (the default)": lambda: jaxps.relight(models["wrap_ggx"], normals,
                                                                 albedo, light),
         "render_lambertian": lambda: jaxps.render_lambertian(normals, albedo, light),
+        "render_lambertian_per_pixel_lights": lambda: jaxps.render_lambertian(
+            normals, albedo, pixel_lights),
+        "render_lambertian_einsum (previous)": partial_jit(render_einsum, normals, albedo, light),
+        "render_lambertian_einsum_per_pixel_lights (previous)": partial_jit(
+            render_einsum, normals, albedo, pixel_lights),
         # the same kernel compiled without its 512-bit vector preference
         "relight_mlp_ratio_default_vector_width (before _WIDE_VECTORS)": lambda: _relight.plain(
             *_relight_args(m), normals, albedo, light),

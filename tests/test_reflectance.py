@@ -62,6 +62,24 @@ def test_model_matches_paper_formula(form):
     assert float(jaxps.oren_nayar(2.0, 0.3, 0.0, 0.3, form=form)) == 0.0
 
 
+def test_render_lambertian_matches_numpy():
+    rng = np.random.default_rng(3)
+    n = rng.normal(size=(7, 9, 3))
+    n[..., 2] = np.abs(n[..., 2])
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    grey, colour = rng.uniform(0.2, 1, (7, 9)), rng.uniform(0.2, 1, (7, 9, 3))
+    distant = rng.normal(size=(4, 3)) + [0, 0, 2]
+    per_pixel = rng.normal(size=(4, 7, 9, 3)) + [0, 0, 2]
+    for lights, shade in ((distant, np.einsum("kc,hwc->khw", distant, n)),
+                          (per_pixel, np.einsum("khwc,hwc->khw", per_pixel, n))):
+        shade = np.maximum(shade, 0)
+        assert np.any(shade == 0) and np.any(shade > 0)  # attached shadows clamp at 0
+        for albedo, want in ((grey, shade * grey), (colour, shade[..., None] * colour)):
+            got = jaxps.render_lambertian(n.astype(np.float32), albedo, lights)
+            assert got.shape == want.shape and got.dtype == jnp.float32
+            np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=2e-6)
+
+
 def test_render_matches_angle_form_and_gradients_finite():
     surf = jaxps.synthetic.sphere(24, max_zenith_deg=80)
     n = np.asarray(surf.normals, np.float64)

@@ -43,10 +43,14 @@ def render_lambertian(
 
 @jax.jit
 def _render(normals, albedo, lights):
+    # l . n as three multiply-adds over whole planes: one fused loop over the image, where
+    # an einsum was a dot XLA-CPU ran on its own, then another pass for the clamp
+    # (`benchmarks/bench_brdf.py --part speed`, the render_lambertian rows)
+    n = [normals[..., c] for c in range(3)]
     if lights.ndim == 2:
-        shade = jnp.einsum("kc,hwc->khw", lights, normals)
+        shade = sum(lights[:, c, None, None] * n[c][None] for c in range(3))
     else:
-        shade = jnp.einsum("khwc,hwc->khw", lights, normals)
+        shade = sum(lights[..., c] * n[c][None] for c in range(3))
     shade = jnp.maximum(shade, 0)
     if albedo.ndim == 3:
         return shade[..., None] * albedo[None]
