@@ -308,6 +308,8 @@ def relight_speed(models, normals, albedo, rounds=15):
     import jax.numpy as jnp
     from jax.scipy.ndimage import map_coordinates
 
+    from jaxps.core._elementwise import atan2_nonneg as _atan2_nonneg
+    from jaxps.core._elementwise import tanh as _tanh
     from jaxps.reflectance._brdf import (
         _mlp,
         _mlp_elementwise,
@@ -315,11 +317,9 @@ def relight_speed(models, normals, albedo, rounds=15):
         _relight,
         _relight_args,
         _support_weight,
-        _tanh,
     )
     from jaxps.reflectance._features import (
         _angles_elementwise,
-        _atan2_nonneg,
         _sample_angles,
         pixel_coordinates,
     )

@@ -77,6 +77,7 @@ from jax.flatten_util import ravel_pytree
 from jaxtyping import Array, ArrayLike, Bool, Float
 from threadpoolctl import threadpool_limits
 
+from ..core._elementwise import tanh as _tanh
 from ..core._host import CpuTuned
 from ..core._random import as_key
 from . import _parametric
@@ -809,32 +810,6 @@ def _mlp_elementwise(params, rows):
             out.append(acc)
         rows = out if layer == len(params) - 1 else [_tanh(a) for a in out]
     return rows[0]
-
-
-# Eigen's float32 tanh (`ptanh_float`): odd degree-13 over even degree-6 polynomial on
-# [-7.9053, 7.9053], where tanh is 1 to float32 precision; within 4e-7 of numpy
-# (tests/test_brdf.py).
-_TANH_P = (-2.76076847742355e-16, 2.00018790482477e-13, -8.60467152213735e-11,
-           5.12229709037114e-08, 1.48572235717979e-05, 6.37261928875436e-04,
-           4.89352455891786e-03)
-_TANH_Q = (1.19825839466702e-06, 1.18534705686654e-04, 2.26843463243900e-03,
-           4.89352518554385e-03)
-
-
-def _tanh(x):
-    """tanh for the relight kernel: float32 uses the rational form above, times a reciprocal,
-    which XLA-CPU fuses and vectorises in line, faster than its own tanh (`bench_brdf.py
-    --part speed`, the tanh pieces); other dtypes `jnp.tanh`."""
-    if x.dtype != jnp.float32:
-        return jnp.tanh(x)
-    x = jnp.clip(x, -7.90531110763549805, 7.90531110763549805)
-    x2 = x * x
-    p, q = _TANH_P[0], _TANH_Q[0]
-    for c in _TANH_P[1:]:
-        p = p * x2 + c
-    for c in _TANH_Q[1:]:
-        q = q * x2 + c
-    return x * p * (1 / q)
 
 
 def extrapolation_mask(

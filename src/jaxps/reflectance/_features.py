@@ -22,19 +22,19 @@ stay finite.
 Layout for speed (`_angles_elementwise`): the image-sized work is written as elementwise
 expressions on `(K, P)` arrays (P = H W pixels; per-pixel terms `(1, P)`, per-light `(K, 1)`),
 not as a per-pixel kernel of 3-vector `cross`/`dot` lifted by `vmap`, and in float32 the
-arctangent is a vectorisable polynomial (`_atan2_nonneg`, Cephes `atanf`, ~1 ulp) instead of
-XLA's `atan2`, which on CPU took ~7 ms per 600,000 values against ~0.8 ms for the polynomial
-and ~0.5 ms for a `tanh` (`benchmarks/bench_brdf.py --part speed`, docs/brdf.md).
+arctangent is a vectorisable polynomial (`core._elementwise.atan2_nonneg`, Cephes `atanf`)
+instead of XLA's `atan2`, a scalar call on the CPU (`benchmarks/bench_brdf.py --part speed`,
+the atan2 pieces; docs/brdf.md).
 """
 
 from __future__ import annotations
-
-import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
+
+from ..core._elementwise import atan2_nonneg as _atan2_nonneg
 
 __all__ = ["FEATURE_NAMES", "brdf_features", "pixel_coordinates"]
 
@@ -52,33 +52,6 @@ def _angle(a, b):
     small = (c2 <= tiny) & (jnp.abs(dot) <= 1e-12)
     return jnp.where(small, jnp.zeros((), a.dtype),
                      jnp.arctan2(cross, jnp.where(small, jnp.ones((), a.dtype), dot)))
-
-
-def _atan2_nonneg(y, x):
-    """$\\arctan2(y, x)$ for $y \\ge 0$ (not both 0), elementwise, in $[0, \\pi]$.
-
-    float32: Cephes `atanf` (argument reduced to $[0, 1]$, then to $|t| \\le \\tan(\\pi/8)$,
-    degree-9 odd polynomial; ~1 ulp); every step is a vectorisable multiply/divide/select,
-    ~9x faster than XLA's CPU `atan2` on this project's machine. Other dtypes use
-    `jnp.arctan2`.
-    """
-    if jnp.dtype(y.dtype).itemsize > 4:
-        return jnp.arctan2(y, x)
-    dtype = y.dtype
-    ax = jnp.abs(x)
-    big, small = jnp.maximum(ax, y), jnp.minimum(ax, y)  # a = small / big in [0, 1]
-    mid = small > 0.41421356 * big  # a > tan(pi/8): reduce to (a - 1) / (a + 1), offset pi/4
-    # a numerator times one reciprocal: XLA-CPU writes a quotient `a / b` of two computed
-    # arrays to memory, as a pass of its own, when it has more than one user (as `t` has);
-    # `1 / b` (a constant numerator) stays fused
-    den = jnp.where(mid, small + big, jnp.where(big > 0, big, jnp.ones((), dtype)))
-    t = jnp.where(mid, small - big, small) * (1 / den)
-    z = t * t
-    poly = (((8.05374449538e-2 * z - 1.38776856032e-1) * z + 1.99777106478e-1) * z
-            - 3.33329491539e-1) * z * t + t
-    r = jnp.where(mid, poly + jnp.asarray(math.pi / 4, dtype), poly)
-    r = jnp.where(y > ax, jnp.asarray(math.pi / 2, dtype) - r, r)
-    return jnp.where(x < 0, jnp.asarray(math.pi, dtype) - r, r)
 
 
 def _angle_elementwise(cx, cy, cz, dot):
