@@ -1,8 +1,8 @@
 """Elementwise functions written so that XLA-CPU fuses and vectorises them in line.
 
-XLA's CPU `atan2` is a scalar library call (about 9x slower than the polynomial here), and its
-`tanh` was slower than the rational form here inside the MLP relight kernel
-(`benchmarks/bench_brdf.py --part speed`, the atan2 and tanh pieces). Both forms use one
+XLA's CPU `atan2` is a scalar library call, several times slower than the polynomial here, and
+its `tanh` is slower than the rational form here (`benchmarks/bench_brdf.py --part speed`, the
+atan2 and tanh pieces). Both forms use one
 reciprocal times a numerator rather than a quotient: XLA-CPU writes a quotient `a / b` of two
 computed arrays to memory, as a pass of its own, when it has more than one user, while `1 / b`
 stays fused (`benchmarks/fusion_rules.py`). Other dtypes than float32 fall back to `jnp`.

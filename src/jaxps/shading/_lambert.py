@@ -45,7 +45,7 @@ def render_lambertian(
 def _render(normals, albedo, lights):
     # l . n as three multiply-adds over whole planes: one fused loop over the image, where
     # an einsum was a dot XLA-CPU ran on its own, then another pass for the clamp
-    # (`benchmarks/bench_brdf.py --part speed`, the render_lambertian rows)
+    # (`benchmarks/bench_evaluate.py`, the render_lambertian rows)
     n = [normals[..., c] for c in range(3)]
     if lights.ndim == 2:
         shade = sum(lights[:, c, None, None] * n[c][None] for c in range(3))
