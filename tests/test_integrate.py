@@ -57,6 +57,36 @@ def test_normals_from_height_of_plane_and_roundtrip():
     assert err.max() < 0.2  # central differences on a smooth surface
 
 
+def test_normals_from_height_masked_matches_numpy():
+    """The documented rule: central differences where both neighbours are in the mask, one-sided
+    where one is, slope 0 where neither is; (0, 0, 1) outside the mask."""
+    rng = np.random.default_rng(4)
+    h, w = 23, 31
+    z = rng.normal(size=(h, w))
+    mask = rng.uniform(size=(h, w)) > 0.3
+    pixel_size = 0.7
+
+    def derivative(axis):
+        zt, mt = np.moveaxis(z, axis, 0), np.moveaxis(mask, axis, 0)
+        d = np.zeros_like(zt)
+        for i in range(zt.shape[0]):
+            fwd = i + 1 < zt.shape[0] and mt[i + 1] & mt[i]
+            bwd = i > 0 and mt[i - 1] & mt[i]
+            up = zt[i + 1] - zt[i] if i + 1 < zt.shape[0] else 0
+            down = zt[i] - zt[i - 1] if i > 0 else 0
+            d[i] = np.where(fwd & bwd, (up + down) / 2, np.where(fwd, up, np.where(bwd, down, 0)))
+        return np.moveaxis(d, 0, axis)
+
+    p, q = derivative(1) / pixel_size, -derivative(0) / pixel_size
+    n = np.stack([-p, -q, np.ones_like(p)], -1)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    n[~mask] = [0, 0, 1]
+    got = np.asarray(jaxps.normals_from_height(z.astype(np.float32), mask=mask,
+                                               pixel_size=pixel_size))
+    np.testing.assert_allclose(got, n, rtol=0, atol=2e-6)
+    assert np.any(np.abs(derivative(1))[mask] == 0)  # some pixels have no neighbour in a row
+
+
 def test_nan_normals_give_finite_height():
     _, n = periodic_surface()
     n = n.copy()
