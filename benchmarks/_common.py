@@ -92,6 +92,27 @@ def page_faults(fn) -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
 
 
+def interleaved(cases: dict, rounds: int):
+    """Time the zero-argument callables `cases` (each call waited for) in `rounds` interleaved
+    rounds, so that the load of a shared machine hits them alike.
+
+    **Returns:** `(first_call_s, seconds)`: `{name: s}` of each first call (compile + run), and
+    `{name: [s, ...]}` of the later calls, one per round.
+    """
+    first = {}
+    for name, fn in cases.items():
+        t0 = time.perf_counter()
+        block(fn())
+        first[name] = time.perf_counter() - t0
+    seconds = {name: [] for name in cases}
+    for _ in range(rounds):
+        for name, fn in cases.items():
+            t0 = time.perf_counter()
+            block(fn())
+            seconds[name].append(time.perf_counter() - t0)
+    return first, seconds
+
+
 def environment() -> dict:
     """What the figures were measured on (thread settings included)."""
     import jax

@@ -39,12 +39,12 @@ import jaxps
 from jaxps.reflectance._score import image_gains, rmse_gray
 
 try:
-    from benchmarks._common import clean_frames
+    from benchmarks._common import clean_frames, interleaved
 except ImportError:  # run as a script
     import sys
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import clean_frames
+    from benchmarks._common import clean_frames, interleaved
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA = pathlib.Path(os.environ.get("JAXPS_DATA", ROOT.parent / "shared" / "data"))
@@ -405,16 +405,7 @@ def relight_speed(models, normals, albedo, rounds=15):
                                                   mode="nearest"), (None, 0)),
             m.support, jnp.stack([ti, tr, da], -1).reshape(-1, 3)),
     }
-    compile_s, runs = {}, {name: [] for name in cases}
-    for name, fn in cases.items():
-        t = time.perf_counter()
-        jax.block_until_ready(fn())
-        compile_s[name] = time.perf_counter() - t
-    for _ in range(rounds):
-        for name, fn in cases.items():
-            t = time.perf_counter()
-            jax.block_until_ready(fn())
-            runs[name].append(time.perf_counter() - t)
+    compile_s, runs = interleaved(cases, rounds)
     out = {"relight_image": [h, w], "relight_rounds": rounds, "relight": {}}
     for name in cases:
         r = np.asarray(runs[name]) * 1e3

@@ -6,17 +6,15 @@ height map, Lambertian rendering; each beside a numpy baseline and beside its pr
         [--rounds 15] [--out benchmarks/results/evaluate_speed.json]
 
 Rounds interleave the rows so that the load of a shared machine hits them alike; median and
-min over rounds, compile (first call) apart. Every row's result is checked against the numpy
-baseline's before timing.
+min over rounds, compile (first call) apart. Every row's result is checked against the first
+row of its work before timing.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
-import platform
-import time
+import sys
 from pathlib import Path
 
 import jax
@@ -25,6 +23,12 @@ import numpy as np
 
 import jaxps
 from jaxps.core._safe import safe_norm
+
+try:
+    from benchmarks._common import environment, interleaved
+except ImportError:  # run as a script
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks._common import environment, interleaved
 
 OUT = Path(__file__).resolve().parent / "results"
 
@@ -132,23 +136,13 @@ def main():
     }
     tolerance = {"angular_error": 1e-3, "normals_from_height": 1e-5,
                  "normals_from_height_masked": 1e-5, "render_lambertian": 1e-5}
-    reference, first = {}, {}
+    reference = {}
     for name, (work, fn) in rows.items():
-        t = time.perf_counter()
-        out = np.asarray(jax.block_until_ready(fn()))
-        first[name] = time.perf_counter() - t
+        out = np.asarray(fn())
         ref = reference.setdefault(work, out)  # the first row of a work is its baseline
         np.testing.assert_allclose(out, ref, rtol=0, atol=tolerance[work], err_msg=name)
-    runs = {name: [] for name in rows}
-    for _ in range(args.rounds):
-        for name, (_, fn) in rows.items():
-            t = time.perf_counter()
-            jax.block_until_ready(fn())
-            runs[name].append(time.perf_counter() - t)
-    res = {"image": [h, w], "rounds": args.rounds, "rows": {},
-           "machine": {"platform": platform.platform(), "cpus": os.cpu_count(),
-                       "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
-                       "jax": jax.__version__, "backend": jax.default_backend()}}
+    first, runs = interleaved({name: fn for name, (_, fn) in rows.items()}, args.rounds)
+    res = {"image": [h, w], "rounds": args.rounds, "rows": {}, "machine": environment()}
     base = {}
     for name, (work, _) in rows.items():
         r = np.asarray(runs[name]) * 1e3

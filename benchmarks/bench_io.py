@@ -26,15 +26,14 @@ import pathlib
 import subprocess
 import sys
 import tempfile
-import time
 
 import numpy as np
 
 try:
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import environment, interleaved, write_json
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import environment, interleaved, write_json
 
 QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 ROUNDS = 3 if QUICK else 9
@@ -43,14 +42,7 @@ SIZE = (256, 320) if QUICK else (1024, 1280)  # rows, columns; --quick for a smo
 
 def _rounds(cases):
     """{name: {"median_s", "min_s"}} over `ROUNDS` interleaved calls of each case."""
-    for f in cases.values():
-        f()
-    times = {name: [] for name in cases}
-    for _ in range(ROUNDS):
-        for name, f in cases.items():
-            t = time.perf_counter()
-            f()
-            times[name].append(time.perf_counter() - t)
+    _, times = interleaved(cases, ROUNDS)
     return {name: {"median_s": float(np.median(v)), "min_s": float(min(v))}
             for name, v in times.items()}
 

@@ -22,18 +22,17 @@ from __future__ import annotations
 
 import statistics
 import sys
-import time
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
 try:
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import environment, interleaved, write_json
 except ImportError:  # run as a script
     import pathlib
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import environment, interleaved, write_json
 
 
 def main(methods=("l2", "l1", "barsky", "irls", "sbl"), rounds=7):
@@ -79,14 +78,7 @@ def main(methods=("l2", "l1", "barsky", "irls", "sbl"), rounds=7):
     names = ["one program", "library", "halves on threads"]
     cases = {(m, n): variant(m, n) for m in methods
              for n in names + (["2x bands"] if m in ps._BANDED_SOLVERS else [])}
-    for fn in cases.values():
-        fn()  # compile
-    times = {c: [] for c in cases}
-    for _ in range(rounds):
-        for c, fn in cases.items():
-            t = time.perf_counter()
-            fn()
-            times[c].append(time.perf_counter() - t)
+    _, times = interleaved(cases, rounds)
     out = {"environment": environment(), "image": [h, w], "lights": 5, "cores": cores,
            "rounds": rounds, "band_pixels": banded_pixels, "seconds_median": {}}
     for (m, n), ts in times.items():
@@ -118,14 +110,7 @@ def batches(rounds):
 
             cases = {"batch": batch, "batch lax.map (vmap_size=1)": lambda: batch(vmap_size=1),
                      "single calls": singles}
-            for fn in cases.values():
-                jax.block_until_ready(fn())
-            times = {c: [] for c in cases}
-            for _ in range(rounds):
-                for c, fn in cases.items():
-                    t = time.perf_counter()
-                    jax.block_until_ready(fn())
-                    times[c].append(time.perf_counter() - t)
+            _, times = interleaved(cases, rounds)
             key = f"{method} {n}x{h}x{w}"
             out[key] = {c: statistics.median(ts) for c, ts in times.items()}
             print(key, "  ".join(f"{c} {v:.4f} s" for c, v in out[key].items()), flush=True)
