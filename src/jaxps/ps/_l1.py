@@ -66,8 +66,8 @@ def _pixel_l1(x, usable, inside, lights, thresholds, triples, outlier):
         return [safe_divide(sum(s[k] * x[k][c] for k in ks), ss) for c in range(len(x[0]))]
 
     cases.append((~jnp.isfinite(best), Status.DEGENERATE))  # no usable triple spans 3-D
-    return _finish(b, sq, _count(inlier), cases, inside,
-                   None if len(x[0]) == 1 else colour_albedo)
+    colour_albedo = None if len(x[0]) == 1 else colour_albedo
+    return _finish(lambda view: (b, sq, colour_albedo), _count(inlier), cases, inside)
 
 
 def ps_l1(images, lights, mask, sample_mask, thresholds, *, threshold: float = 0.05) -> PSResult:
