@@ -3,10 +3,11 @@
     PYTHONPATH=src python benchmarks/fusion_rules.py [--out benchmarks/results/fusion_rules.json]
 
 Each probe is one jitted expression of two `(1, 595000)` float32 inputs (the pixels of a
-700x850 image) with one output. It is compiled (not run), and the script counts the loop
-fusions over the whole image in the compiled HLO: 1 means one pass over memory; each extra one
-is an intermediate written to memory and read back. docs/brdf.md ("Speed") uses these rules.
-The last line counts the same for `jaxps.relight` of an MLP model at 700x850.
+700x850 image) with one output, or two for the last three. It is compiled (not run), and the
+script counts the loop fusions over the whole image in the compiled HLO: 1 per output means
+one pass over memory each; each extra one is an intermediate written to memory and read back.
+docs/brdf.md ("Speed") and docs/speed.md (L2's solve per output pass) use these rules. The
+last line counts the same for `jaxps.relight` of an MLP model at 700x850.
 """
 
 from __future__ import annotations
@@ -47,6 +48,16 @@ PROBES = {
         jnp.tanh(i * (a * b) + b) for i in range(5)),
     "a gather, used twice": lambda a, b: (lambda g: g * a + g * g)(_lookup(a)),
     "a gather, used once": lambda a, b: _lookup(a) * b,
+    # two outputs that need the same value: XLA-CPU writes it once and both outputs read it,
+    # also when it is written out twice (XLA's common-subexpression pass merges the copies),
+    # and an optimization barrier around each copy's inputs does not keep them apart
+    "two outputs of one shared value": lambda a, b: (lambda s: (s + 1, s * b))(
+        jnp.sqrt(a * b + a)),
+    "two outputs, the value written out twice": lambda a, b: (
+        jnp.sqrt(a * b + a) + 1, jnp.sqrt(a * b + a) * b),
+    "two outputs, each from its own barrier copy": lambda a, b: tuple(
+        f(*jax.lax.optimization_barrier(((a, b), np.int32(i)))[0]) for i, f in enumerate(
+            (lambda a, b: jnp.sqrt(a * b + a) + 1, lambda a, b: jnp.sqrt(a * b + a) * b))),
 }
 
 

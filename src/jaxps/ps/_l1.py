@@ -67,7 +67,7 @@ def _pixel_l1(x, usable, inside, lights, thresholds, triples, outlier):
 
     cases.append((~jnp.isfinite(best), Status.DEGENERATE))  # no usable triple spans 3-D
     colour_albedo = None if len(x[0]) == 1 else colour_albedo
-    return _finish(lambda view: (b, sq, colour_albedo), _count(inlier), cases, inside)
+    return _finish(lambda: (b, sq, colour_albedo), _count(inlier), cases, inside)
 
 
 def ps_l1(images, lights, mask, sample_mask, thresholds, *, threshold: float = 0.05) -> PSResult:

@@ -102,36 +102,24 @@ def _samples(x, usable, thresholds, all_finite=False):
     return x, g, used, cases
 
 
-VIEWS = 4  # the status pass, then normals, albedo and residual each from their own copy
-
-
-def _views(images):
-    """`images` once as they are and `VIEWS - 1` times behind an optimization barrier each,
-    so that no two of `_finish`'s passes share a computed value.
-
-    XLA-CPU computes each output in its own loop over the image, and it does not recompute in
-    each loop an intermediate that reads the samples: it wrote $|b|$, $1/|b|$ and $n_z$ to
-    memory and every output's loop read them back (10 planes written for 7 output planes at
-    K=5). Solving $b$ again from the samples in each loop is cheaper than those writes
-    (docs/speed.md, "The core at 1280x1024"). The barrier must hold the whole array: behind
-    one per plane, XLA wrote the three components of $b$ for the normals' loop.
-    """
-    return [images] + [jax.lax.optimization_barrier((images, np.int32(v)))[0]
-                       for v in range(1, VIEWS)]
-
-
 def _finish(solve, n_used, cases, inside):
-    """Normal, albedo, status, residual from `solve(view)`, which returns $b = \rho n$, the
-    squared misfit and the colour albedo's function of $n$ (None for grey), all from the
-    samples' `_view(x, view)`: status from view 0, then each output from a view of its own."""
+    """Normal, albedo, status, residual from `solve()`, which returns $b = \\rho n$, the squared
+    misfit and the colour albedo's function of $n$ (None for grey).
 
-    def normal(view):
-        b, sq, colour_albedo = solve(view)
+    `solve` is called once for the status and once for each output. Where it computes from
+    the samples (`_pixel_all_used`), XLA-CPU then computes $b$ again in each output's loop
+    over the image. From one call, it wrote $|b|$, $1/|b|$ and $n_z$ to memory for the other
+    loops to read back: 7 loop fusions at K=5 instead of 4, and slower
+    (`benchmarks/bench_l2_views.py`, `benchmarks/hlo_l2.py`; docs/speed.md).
+    """
+
+    def normal():
+        b, sq, colour_albedo = solve()
         rho_grey = safe_sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
         inv_rho = 1 / jnp.where(rho_grey > 0, rho_grey, 1)
         return [v * inv_rho for v in b], rho_grey, sq, colour_albedo
 
-    n, rho_grey, _, _ = normal(0)
+    n, rho_grey, _, _ = normal()
     status = first_status([
         (~inside, Status.MASKED),
         *cases,
@@ -139,21 +127,20 @@ def _finish(solve, n_used, cases, inside):
         (n[2] < 0, Status.BACKFACING),
     ])
     ok = status == Status.OK
-    n = normal(1)[0]
+    n = normal()[0]
     normal_out = (jnp.where(ok, n[0], 0), jnp.where(ok, n[1], 0), jnp.where(ok, n[2], 1))
-    n, rho_grey, _, colour_albedo = normal(2)
+    n, rho_grey, _, colour_albedo = normal()
     rho = [rho_grey] if colour_albedo is None else colour_albedo(n)
     albedo = tuple(jnp.where(ok, v, 0) for v in rho)
-    sq = normal(3)[2]
+    sq = normal()[2]
     residual = safe_sqrt(sq / jnp.maximum(n_used, 1).astype(sq.dtype))
     return normal_out, albedo, status, n_used, jnp.where(ok, residual, 0)
 
 
-def _pixel_all_used(views, usable, inside, shared, thresholds):
+def _pixel_all_used(x, usable, inside, shared, thresholds):
     """Solve one pixel assuming all K samples are usable, with the shared `(3, K)` $L^+$.
 
-    `views`: `VIEWS` copies of the samples (`_views`), each a list of K samples, each a list
-    of C channel scalars; `usable` K bools; `shared`
+    `x` is a list of K samples, each a list of C channel scalars; `usable` K bools; `shared`
     = (lights, pinv, null, gram, full_rank) computed once per image. The squared misfit is
     $\\|N i\\|^2$ with the rows of `null` spanning the complement of the light columns: exact,
     and cheaper than recomputing $i - L b$. Returns the outputs of `_finish` and an int32 of
@@ -163,7 +150,6 @@ def _pixel_all_used(views, usable, inside, shared, thresholds):
     """
     dark, saturation, shadow = thresholds
     lights, pinv, null, gram, full_rank = shared
-    x = views[0]
     ks = range(len(x))
     g = [_grey(xk) for xk in x]
     finite = jnp.isfinite(sum(g))  # one test: a NaN or Inf in any sample makes the sum so
@@ -172,19 +158,18 @@ def _pixel_all_used(views, usable, inside, shared, thresholds):
              & ~_any([v >= saturation for xk in x for v in xk])
              & ~_any([v < shadow for v in g]))
 
-    def solve(view):
-        xv = views[view]
-        gv = [_grey(xk) for xk in xv]
+    def solve():  # called per output by `_finish`: each output's loop solves b again
+        gv = [_grey(xk) for xk in x]
         b = [sum(pinv[p, k] * gv[k] for k in ks) for p in range(3)]
         sq = sum((sum(null[j, k] * gv[k] for k in ks) ** 2 for j in range(null.shape[0])),
                  jnp.zeros((), gv[0].dtype))  # K = 3: no null space, zero misfit
 
         def colour_albedo(n):  # rho_c = n.(L^T i_c) / n.(L^T L) n: the channel's LS albedo
             nan = sum(n[p] * gram[p, q] * n[q] for p in range(3) for q in range(3))
-            return [safe_divide(sum(n[p] * sum(lights[k, p] * xv[k][c] for k in ks)
-                                     for p in range(3)), nan) for c in range(len(xv[0]))]
+            return [safe_divide(sum(n[p] * sum(lights[k, p] * x[k][c] for k in ks)
+                                     for p in range(3)), nan) for c in range(len(x[0]))]
 
-        return b, sq, None if len(xv[0]) == 1 else colour_albedo
+        return b, sq, None if len(x[0]) == 1 else colour_albedo
 
     brightest = functools.reduce(jnp.maximum, g)
     cases = [(brightest <= dark, Status.DARK), (~full_rank, Status.DEGENERATE)]
@@ -195,17 +180,17 @@ def _pixel_all_used(views, usable, inside, shared, thresholds):
     return *out, jnp.where(inside, flags, 0)
 
 
-def _pixel_weighted(views, usable, inside, lights, thresholds, all_finite=False):
+def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
     """Solve one pixel over its usable samples: $b = (L^T W L)^{-1} L^T W i$ by cofactors.
 
-    `views` and `usable` as in `_pixel_all_used`; `lights` a list of K `[lx, ly, lz]` (shared
+    `x` and `usable` as in `_pixel_all_used`; `lights` a list of K `[lx, ly, lz]` (shared
     scalars or this pixel's own vectors); `all_finite` as in `_samples`. Every output takes
-    the one solve of view 0: this solve costs too much to repeat in each output's pass (at
-    K=12 with 5% of the samples dropped that was slower, docs/speed.md).
+    this one solve: solved again in each output's loop, it was slower at K=12 with 5% of the
+    samples dropped (docs/speed.md).
     """
-    ks = range(len(views[0]))
-    dtype = views[0][0][0].dtype
-    x, g, used, cases = _samples(views[0], usable, thresholds, all_finite)
+    ks = range(len(x))
+    dtype = x[0][0].dtype
+    x, g, used, cases = _samples(x, usable, thresholds, all_finite)
     w = [u.astype(dtype) for u in used]
     channels = [] if len(x[0]) == 1 else [[x[k][c] for k in ks] for c in range(len(x[0]))]
     a, (r, *r_channels) = normal_equations(w, lights, [g, *channels])
@@ -219,7 +204,7 @@ def _pixel_weighted(views, usable, inside, lights, thresholds, all_finite=False)
 
     cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))
     colour_albedo = None if len(x[0]) == 1 else colour_albedo
-    return _finish(lambda view: (b, sq, colour_albedo), _count(used), cases, inside)
+    return _finish(lambda: (b, sq, colour_albedo), _count(used), cases, inside)
 
 
 @jax.custom_jvp
@@ -262,18 +247,14 @@ def host_constants(lights: np.ndarray) -> tuple[np.ndarray, ...]:
 
 
 def _planes(images, sample_mask, mask, flat):
-    """One plane per sample and channel of `(K, H, W, C)` or grey `(K, H, W)` images, for each
-    of `_views(images)`, the usable planes (or K `True`s) and the mask: `(H*W,)` planes if
-    `flat`, else `(H, W)`."""
+    """One plane per sample and channel of `(K, H, W, C)` or grey `(K, H, W)` images, the
+    usable planes (or K `True`s) and the mask: `(H*W,)` planes if `flat`, else `(H, W)`."""
     k = images.shape[0]
     plane = (lambda a: a.reshape(-1)) if flat else (lambda a: a)
-
-    def samples(im):
-        if im.ndim == 3:  # sliced as it is: a channel axis added first changed XLA's fusions
-            return [[plane(im[i])] for i in range(k)]
-        return [[plane(im[i, :, :, j]) for j in range(im.shape[3])] for i in range(k)]
-
-    x = [samples(im) for im in _views(images)]
+    if images.ndim == 3:  # sliced as it is: a channel axis added first changed XLA's fusions
+        x = [[plane(images[i])] for i in range(k)]
+    else:
+        x = [[plane(images[i, :, :, j]) for j in range(images.shape[3])] for i in range(k)]
     usable = [True] * k if sample_mask is None else [plane(sample_mask[i]) for i in range(k)]
     return x, usable, plane(mask)
 

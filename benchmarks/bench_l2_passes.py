@@ -1,19 +1,18 @@
 """L2's every-sample-used solve with a solve of its own in each output pass, against the
 same solve with every output taken from one solve (the form before), in the same rounds.
 
-`ps/_l2.py` gives each output pass of the solve (status, normals, albedo, residual) its own
-copy of the samples behind an optimization barrier (`_views`), so that XLA-CPU solves $b$
-again in each pass instead of writing $|b|$, $1/|b|$ and $n_z$ to memory for the others to
-read. The previous form (`_finish_before`, patched in while it is traced) takes every
-output from one solve of view 0. Both are compiled the way `photometric_stereo` compiles a clean capture's solve
+`ps/_l2.py`'s `_finish` asks the solve for $b$ once for the status and once for each output
+(normals, albedo, residual), so that XLA-CPU solves $b$ again in each output's loop instead
+of writing $|b|$, $1/|b|$ and $n_z$ to memory for the other loops to read. The previous form
+(`_finish_before`, patched in while it is traced) takes every output from one call. Both are compiled the way `photometric_stereo` compiles a clean capture's solve
 (`_run` with `branch="all_used"` and `OLDER_EMITTERS`), on a clean synthetic capture at
 1280x1024, K = 5 and 12; the numpy pinv-matmul + normalise of `bench_core.py` and the
 whole `photometric_stereo` call (flag pass, host read, solve) run in the same interleaved
 rounds. Also recorded: each program's loop fusions and compile time, and the largest
 difference between the two forms' outputs.
 
-    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_l2_views.py [--rounds 25]
-    -> benchmarks/results/l2_views.json
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_l2_passes.py [--rounds 25]
+    -> benchmarks/results/l2_passes.json
 """
 
 from __future__ import annotations
@@ -51,8 +50,8 @@ H, W = 1024, 1280
 
 
 def _finish_before(solve, n_used, cases, inside):
-    """`_l2._finish` as it was: every output from the one solve of view 0."""
-    b, sq, colour_albedo = solve(0)
+    """`_l2._finish` as it was: every output from one call of `solve`."""
+    b, sq, colour_albedo = solve()
     rho_grey = safe_sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
     inv_rho = 1 / jnp.where(rho_grey > 0, rho_grey, 1)
     n = [v * inv_rho for v in b]
@@ -87,7 +86,7 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     quick = os.environ.get("JAXPS_BENCH_QUICK") == "1"  # the runner's quick mode
     parser.add_argument("--rounds", type=int, default=3 if quick else 25)
-    parser.add_argument("--out", default=str(RESULTS / "l2_views.json"))
+    parser.add_argument("--out", default=str(RESULTS / "l2_passes.json"))
     ns = parser.parse_args()
     surface = jaxps.synthetic.face_like(H, W)
     cases, programs = {}, {}
