@@ -110,7 +110,7 @@ def _finish(solve, n_used, cases, inside):
     the samples (`_pixel_all_used`), XLA-CPU then computes $b$ again in each output's loop
     over the image. From one call, it wrote $|b|$, $1/|b|$ and $n_z$ to memory for the other
     loops to read back: 7 loop fusions at K=5 instead of 4, and slower
-    (`benchmarks/bench_l2_views.py`, `benchmarks/hlo_l2.py`; docs/speed.md).
+    (`benchmarks/bench_l2_passes.py`, `benchmarks/hlo_l2.py`; docs/speed.md).
     """
 
     def normal():
