@@ -88,12 +88,12 @@ def _compiled(args, finish, branch):
         _l2._finish = kept
 
 
+_FINISH = _l2._finish  # as it is, before any patch
+
+
 def _finish_nz(*args, **kwargs):
     """`_l2._finish` testing the sign of $n_z$ for `BACKFACING` (the weighted solve before)."""
     return _FINISH(*args, **{**kwargs, "backfacing_from_b": False})
-
-
-_FINISH = _l2._finish
 # (label, lights K, 5% of the samples dropped, the solve's branch, the two forms)
 CASES = [
     ("K=5", 5, False, "all_used", (("every output from one solve (before)", _finish_before),

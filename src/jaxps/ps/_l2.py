@@ -106,17 +106,17 @@ def _finish(solve, n_used, cases, inside, backfacing_from_b=False):
     """Normal, albedo, status, residual from `solve()`, which returns $b = \\rho n$, the squared
     misfit and the colour albedo's function of $n$ (None for grey).
 
-    `backfacing_from_b`: test the sign of $b_z$ for `BACKFACING`, not of $n_z = b_z / |b|$
-    (the same test but where $n_z$ underflows to -0). The weighted solve then needs no
-    $1/|b|$ in its status pass, where XLA-CPU wrote $n_z$ to memory for it: 11 loop fusions
-    instead of 13, and faster (`benchmarks/bench_l2_programs.py`). The every-sample-used solve
-    keeps $n_z$: with $b_z$ XLA-CPU fused it into one more loop, not fewer.
-
     `solve` is called once for the status and once for each output. Where it computes from
     the samples (`_pixel_all_used`), XLA-CPU then computes $b$ again in each output's loop
     over the image. From one call, it wrote $|b|$, $1/|b|$ and $n_z$ to memory for the other
     loops to read back: 7 loop fusions at K=5 instead of 4, and slower
     (`benchmarks/bench_l2_passes.py`, `benchmarks/hlo_l2.py`; docs/speed.md).
+
+    `backfacing_from_b`: test the sign of $b_z$ for `BACKFACING`, not of $n_z = b_z / |b|$
+    (the same test but where $n_z$ underflows to -0). The weighted solve then needs no
+    $1/|b|$ in its status pass, where XLA-CPU wrote $n_z$ to memory for it: 11 loop fusions
+    instead of 13, and faster (`benchmarks/bench_l2_passes.py`). The every-sample-used solve
+    keeps $n_z$: with $b_z$ XLA-CPU fused it into one more loop, not fewer.
     """
 
     def normal():
@@ -138,7 +138,7 @@ def _finish(solve, n_used, cases, inside, backfacing_from_b=False):
     n, rho_grey, _, colour_albedo, _ = normal()
     rho = [rho_grey] if colour_albedo is None else colour_albedo(n)
     albedo = tuple(jnp.where(ok, v, 0) for v in rho)
-    sq = normal()[2]
+    sq = solve()[1]
     residual = safe_sqrt(sq / jnp.maximum(n_used, 1).astype(sq.dtype))
     return normal_out, albedo, status, n_used, jnp.where(ok, residual, 0)
 
