@@ -5,9 +5,11 @@ Run: `OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_batch.py [--
 [--out PATH]` -> benchmarks/results/batch.json (or PATH) and batch.png. Baseline in the same
 run: N single calls. The `_dropped` rows set a shadow threshold at the 5th percentile of the
 samples in the mask, so every capture takes the weighted solve; the `_k12` rows take 12 lights.
-`into_threshold_median_s` times the batch's two writes on each side of `INTO_MAX_PLANES`
-(`ps/_l2.py`); on code from before that constant (run with `PYTHONPATH` at an older checkout)
-those rows are left out.
+Captures that share their lights are solved as one image (`_l2_shared_lights`); the
+`lights_per_capture` rows give the same lights once per capture, which takes the
+capture-by-capture path (`_l2_in_place`). `into_threshold_median_s` times that path's two
+writes on each side of `INTO_MAX_PLANES` (`ps/_l2.py`); on code from before that constant (run
+with `PYTHONPATH` at an older checkout) those rows are left out.
 The 64-capture run is a fresh process (`--peak-rss N CHUNK`) whose peak resident memory
 (`ru_maxrss`) is recorded, input stack included. Each row also records the minor page faults
 of one more call (`page_faults`): first writes to pages the allocator just took from the
@@ -135,13 +137,20 @@ def main():
     caps12, lights12, _ = captures(N, k=12)
     caps12 = aligned(caps12)
     lax_map = _batched_fn("l2", {}, True, True, None)
-    previous = []
+    # the same lights given once per capture: the capture-by-capture path (`_l2_in_place`)
+    per_capture = np.broadcast_to(lights, (N, *np.shape(lights)))
+    per_capture12 = np.broadcast_to(lights12, (N, *np.shape(lights12)))
 
-    def stream():
-        out = jaxps.photometric_stereo_batch(caps_aligned, lights, mask=mask,
-                                             out=previous.pop() if previous else None)
-        previous.append(out)
-        return out
+    def stream(**options):  # a stream of batches, each written into the previous result
+        previous = []
+
+        def run():
+            out = jaxps.photometric_stereo_batch(caps_aligned, lights, mask=mask,
+                                                 out=previous.pop() if previous else None,
+                                                 **options)
+            previous.append(out)
+            return out
+        return run
 
     rows = {
         "batch_l2": lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask),
@@ -163,21 +172,25 @@ def main():
                                                     jnp.asarray(lights), jnp.asarray(mask),
                                                     None),
         # A stream of batches: each call writes into the previous call's result (`out=`).
-        "batch_l2_aligned_reusing_out": stream,
+        "batch_l2_aligned_reusing_out": stream(),
         "batch_l2_aligned_dropped": lambda: jaxps.photometric_stereo_batch(
             caps_aligned, lights, mask=mask, shadow_threshold=threshold),
         "single_calls_l2_aligned_dropped": lambda: [jaxps.photometric_stereo(
             c, lights, mask=mask, shadow_threshold=threshold) for c in caps_aligned],
+        "batch_l2_aligned_dropped_reusing_out": stream(shadow_threshold=threshold),
         "batch_l2_aligned_k12": lambda: jaxps.photometric_stereo_batch(caps12, lights12,
                                                                        mask=mask),
         "single_calls_l2_aligned_k12": lambda: [jaxps.photometric_stereo(c, lights12, mask=mask)
                                                 for c in caps12],
     }
-    if TWO_WRITES:  # each side of `INTO_MAX_PLANES`: K=5 solved then copied, K=12 in one program
+    rows["batch_l2_aligned_lights_per_capture"] = lambda: jaxps.photometric_stereo_batch(
+        caps_aligned, per_capture, mask=mask)
+    if TWO_WRITES:  # each side of `INTO_MAX_PLANES` (lights per capture): K=5 solved then
+        # copied, K=12 in one program
         rows["batch_l2_aligned_copy_path"] = into_max_planes(
-            0, lambda: jaxps.photometric_stereo_batch(caps_aligned, lights, mask=mask))
+            0, lambda: jaxps.photometric_stereo_batch(caps_aligned, per_capture, mask=mask))
         rows["batch_l2_aligned_k12_one_program"] = into_max_planes(
-            12, lambda: jaxps.photometric_stereo_batch(caps12, lights12, mask=mask))
+            12, lambda: jaxps.photometric_stereo_batch(caps12, per_capture12, mask=mask))
     for name, fn in rows.items():
         _, first, run = timed(fn, repeats=5)
         res[name] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run,
@@ -195,12 +208,17 @@ def main():
              "single_calls_l2_aligned"),
             ("batch_over_single_throughput_aligned_dropped", "batch_l2_aligned_dropped",
              "single_calls_l2_aligned_dropped"),
+            ("reusing_out_over_single_throughput_aligned_dropped",
+             "batch_l2_aligned_dropped_reusing_out", "single_calls_l2_aligned_dropped"),
             ("batch_over_single_throughput_aligned_k12", "batch_l2_aligned_k12",
-             "single_calls_l2_aligned_k12")):
+             "single_calls_l2_aligned_k12"),
+            ("lights_per_capture_over_single_throughput_aligned",
+             "batch_l2_aligned_lights_per_capture", "single_calls_l2_aligned")):
         res[key] = res[batch]["captures_per_s"] / res[single]["captures_per_s"]
     if TWO_WRITES:
-        res["into_threshold_median_s"] = into_threshold(caps_aligned, lights, caps12, lights12,
-                                                        mask, rounds=2 if QUICK else 10)
+        res["into_threshold_median_s"] = into_threshold(caps_aligned, per_capture, caps12,
+                                                        per_capture12, mask,
+                                                        rounds=2 if QUICK else 10)
     chunk = 8
     out = subprocess.run([sys.executable, __file__, "--peak-rss", str(N_BIG), str(chunk)]
                          + (["--quick"] if QUICK else []), capture_output=True, text=True,
@@ -222,12 +240,20 @@ def main():
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    labels = ["batch\n(numpy)", "singles\n(numpy)", "batch\n(aligned)", "singles\n(aligned)",
-              "batch\n(device)", "singles\n(device)",
-              "batch vmap\n(device)", "lax.map\n(aligned)", "batch, out=\n(aligned)",
-              "batch\n(dropped)", "singles\n(dropped)", "batch\n(K=12)", "singles\n(K=12)",
-              "batch, copy\n(aligned)", "batch K=12\none program"][:len(rows)]
-    labels.append("semi-cal.\n(one)")
+    labels = {
+        "batch_l2": "batch\n(numpy)", "single_calls_l2": "singles\n(numpy)",
+        "batch_l2_aligned": "batch\n(aligned)", "single_calls_l2_aligned": "singles\n(aligned)",
+        "batch_l2_on_device": "batch\n(device)", "single_calls_l2_on_device": "singles\n(device)",
+        "batch_l2_vmap": "batch vmap\n(device)", "batch_l2_lax_map_aligned": "lax.map\n(aligned)",
+        "batch_l2_aligned_reusing_out": "batch, out=\n(aligned)",
+        "batch_l2_aligned_dropped": "batch\n(dropped)",
+        "single_calls_l2_aligned_dropped": "singles\n(dropped)",
+        "batch_l2_aligned_dropped_reusing_out": "batch, out=\n(dropped)",
+        "batch_l2_aligned_k12": "batch\n(K=12)", "single_calls_l2_aligned_k12": "singles\n(K=12)",
+        "batch_l2_aligned_lights_per_capture": "batch, lights\nper capture",
+        "batch_l2_aligned_copy_path": "per capture,\ncopy",
+        "batch_l2_aligned_k12_one_program": "per capture,\nK=12 one program"}
+    labels = [labels[k] for k in rows] + ["semi-cal.\n(one)"]
     vals = [res[k]["run_s"] / N for k in rows] + [res["semi_calibrated_one_capture"]["run_s"]]
     plt.figure(figsize=(18, 3.2))
     plt.bar(labels, vals)

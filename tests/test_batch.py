@@ -144,6 +144,41 @@ def test_batch_l2_in_place_equals_single_calls_with_per_capture_lights():
     np.testing.assert_array_equal(mapped.status, batch.status)
 
 
+def test_batch_l2_shared_lights_one_image_equals_single_calls():
+    """Captures that share their lights are solved as one image (`_l2_shared_lights`): one
+    capture with a NaN sample sends the stack through the weighted solve, whose results equal
+    the single calls (the clean ones to float32 rounding), from numpy and device input, in
+    one chunk or in chunks of 2 (copied into the stacked outputs), fresh or into `out`."""
+    from jaxps.ps import _batch
+
+    scenes, images = _captures()
+    images[1, 3, 5, 7] = np.nan
+    lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
+    singles = [jaxps.photometric_stereo(images[i], lights, mask=mask) for i in range(3)]
+    first = jaxps.photometric_stereo_batch(images, lights, mask=mask)
+    runs = {"numpy": first, "device": jaxps.photometric_stereo_batch(
+                jax.device_put(images), lights, mask=mask),
+            "chunks": jaxps.photometric_stereo_batch(images, lights, mask=mask, chunk=2),
+            "chunks, out": jaxps.photometric_stereo_batch(
+                images, lights, mask=mask, chunk=2,
+                out=jaxps.photometric_stereo_batch(images, lights, mask=mask))}
+    for run, batch in runs.items():
+        for i, single in enumerate(singles):
+            for name in ("normals", "albedo", "residual"):
+                np.testing.assert_allclose(getattr(batch, name)[i], getattr(single, name),
+                                           atol=1e-6, err_msg=f"{run}: {name}, capture {i}")
+            np.testing.assert_array_equal(batch.status[i], single.status, err_msg=run)
+            np.testing.assert_array_equal(batch.n_used[i], single.n_used, err_msg=run)
+    assert first.n_used[1, 5, 7] == 4 and (np.asarray(first.n_used[0])[mask] == 5).all()
+    # the flag pass per capture: bit 0 (re-solve) and bit 1 (non-finite) only on capture 1
+    x = jax.device_put(images)
+    full = np.broadcast_to(mask, (3, *mask.shape))
+    thresholds = tuple(np.float32(t) for t in _batch._sample_thresholds())
+    consts = _batch.host_constants(np.asarray(lights, np.float64))
+    np.testing.assert_array_equal(_batch.l2_batch_flags(x, full, None, thresholds, consts),
+                                  [0, 3, 0])
+
+
 def test_batch_l2_reuses_out():
     """`out=` takes an earlier result's arrays (donated) and returns this batch's results in
     them, equal to a fresh batch; a result of the wrong shape, one already donated, or `out`

@@ -24,8 +24,9 @@ from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["INTO_MAX_PLANES", "PSResult", "host_constants", "l2_branch", "l2_into",
-           "l2_needs_weights", "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
+__all__ = ["INTO_MAX_PLANES", "PSResult", "branch_of", "host_constants", "l2_batch_flags",
+           "l2_batch_solve", "l2_batch_solve_into", "l2_branch", "l2_into", "l2_needs_weights",
+           "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
 
 
 class PSResult(NamedTuple):
@@ -253,34 +254,43 @@ def host_constants(lights: np.ndarray) -> tuple[np.ndarray, ...]:
     return lights, np.linalg.pinv(lights), u[:, 3:].T, lights.T @ lights, full_rank
 
 
-def _planes(images, sample_mask, mask, flat):
+def _planes(images, sample_mask, mask, flat, batched=False):
     """One plane per sample and channel of `(K, H, W, C)` or grey `(K, H, W)` images, the
-    usable planes (or K `True`s) and the mask: `(H*W,)` planes if `flat`, else `(H, W)`."""
-    k = images.shape[0]
+    usable planes (or K `True`s) and the mask: `(H*W,)` planes if `flat`, else `(H, W)`.
+    `batched`: images `(N, K, H, W[, C])`, sample mask `(N, K, H, W)` and mask `(N, H, W)`,
+    planes `(N, H, W)` (strided slices of the stack, read in place by the passes)."""
+    lead = (slice(None),) if batched else ()
+    k = images.shape[len(lead)]
     plane = (lambda a: a.reshape(-1)) if flat else (lambda a: a)
-    if images.ndim == 3:  # sliced as it is: a channel axis added first changed XLA's fusions
-        x = [[plane(images[i])] for i in range(k)]
+    if images.ndim == 3 + len(lead):  # grey sliced as it is: a channel axis changed the fusions
+        x = [[plane(images[(*lead, i)])] for i in range(k)]
     else:
-        x = [[plane(images[i, :, :, j]) for j in range(images.shape[3])] for i in range(k)]
-    usable = [True] * k if sample_mask is None else [plane(sample_mask[i]) for i in range(k)]
+        x = [[plane(images[(*lead, i, Ellipsis, j)]) for j in range(images.shape[-1])]
+             for i in range(k)]
+    usable = [True] * k if sample_mask is None else [plane(sample_mask[(*lead, i)])
+                                                     for i in range(k)]
     return x, usable, plane(mask)
 
 
-def _lift(kernel, in_axes, flat):
-    """`kernel` over every pixel of `(H*W,)` planes if `flat`, else of `(H, W)` planes."""
-    return jax.vmap(kernel, in_axes) if flat else jax.vmap(jax.vmap(kernel, in_axes), in_axes)
+def _lift(kernel, in_axes, flat, batched=False):
+    """`kernel` over every pixel of `(H*W,)` planes if `flat`, else of `(H, W)` planes (of
+    `(N, H, W)` planes if `batched`)."""
+    lifted = jax.vmap(kernel, in_axes) if flat else jax.vmap(jax.vmap(kernel, in_axes), in_axes)
+    return jax.vmap(lifted, in_axes) if batched else lifted
 
 
-def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True):
+def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True, batched=False):
     """`_pixel_all_used` over every pixel: the outputs, then the "re-solve needed" flags."""
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
-    return _lift(_pixel_all_used, (0, axis, 0, None, None), flat)(
-        *_planes(images, sample_mask, mask, flat), shared, thresholds)
+    return _lift(_pixel_all_used, (0, axis, 0, None, None), flat, batched)(
+        *_planes(images, sample_mask, mask, flat, batched), shared, thresholds)
 
 
-def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, all_finite=False):
-    """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights."""
-    k = images.shape[0]
+def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, all_finite=False,
+                    batched=False):
+    """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights
+    (`batched`: `(N, K, ...)` images with `(K, 3)` lights, as in `_planes`)."""
+    k = images.shape[1 if batched else 0]
     per_pixel = lights.ndim == 4
     if per_pixel:
         lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
@@ -290,8 +300,8 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
         lt = [[lights[i, p] for p in range(3)] for i in range(k)]
     axis = None if sample_mask is None else 0
     kernel = functools.partial(_pixel_weighted, all_finite=all_finite)
-    return _lift(kernel, (0, axis, 0, 0 if per_pixel else None, None), flat)(
-        *_planes(images, sample_mask, mask, flat), lt, thresholds)
+    return _lift(kernel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched)(
+        *_planes(images, sample_mask, mask, flat, batched), lt, thresholds)
 
 
 def _stacked(out):
@@ -383,10 +393,7 @@ def l2_branch(images, mask, sample_mask, thresholds, shared) -> str:
     """`ps_l2`'s `branch`, taken on the host from one read of `l2_needs_weights`:
     `"all_used"`, or `"weighted_finite"` / `"weighted"` as every sample inside the mask is
     finite or not (outside it, the solve's status codes hide whatever a NaN computes)."""
-    flags = int(l2_needs_weights(images, mask, sample_mask, thresholds, shared))
-    if not flags & 1:
-        return "all_used"
-    return "weighted" if flags & 2 else "weighted_finite"
+    return branch_of(int(l2_needs_weights(images, mask, sample_mask, thresholds, shared)))
 
 
 def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:
@@ -451,3 +458,63 @@ def l2_into(out, index, images, lights, mask, sample_mask, thresholds, shared, *
 # two runs) K=5 192-206 against 203-218 ms (`out=` 95-100 against 107-111), K=12 675 against
 # 280-288. With more cores the threshold can only fall, as only the copy path uses them.
 INTO_MAX_PLANES = 5
+
+
+def branch_of(flags: int) -> str:
+    """`ps_l2`'s `branch` from the flags of `l2_needs_weights` (or their bitwise or)."""
+    if not flags & 1:
+        return "all_used"
+    return "weighted" if flags & 2 else "weighted_finite"
+
+
+@jax.jit
+def l2_batch_flags(images, mask, sample_mask, thresholds, shared):
+    """`l2_needs_weights` of each capture of a stack that shares its lights: `(N,)` int32.
+    `images` `(N, K, H, W[, C])`, `mask` `(N, H, W)`, `sample_mask` `(N, K, H, W)` or None."""
+    if images.dtype == jnp.float16:
+        images = images.astype(jnp.float32)
+    thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
+    shared = _cast_shared(shared, images.dtype)
+    needs = _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=False,
+                            batched=True)[-1]
+    return jnp.max(needs, axis=(1, 2))
+
+
+def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, dtype):
+    if images.dtype == jnp.float16:
+        images = images.astype(jnp.float32)
+    if branch == "all_used":
+        res = _solve_all_used(images, mask, sample_mask, thresholds,
+                              _cast_shared(shared, images.dtype), flat=False, batched=True)[:-1]
+    else:
+        res = _solve_weighted(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
+                              flat=False, all_finite=branch == "weighted_finite", batched=True)
+    normal, albedo, status, n_used, residual = _stacked(res)
+    return normal.astype(dtype), albedo.astype(dtype), status, n_used, residual.astype(dtype)
+
+
+@functools.partial(jax.jit, static_argnames=("branch", "dtype"))
+def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, branch, dtype):
+    """N captures that share their `(K, 3)` lights solved as one image of N times the pixels:
+    each output is one pass over the stack, on all threads, written straight into its
+    `(N, ...)` array (no per-capture program, no copy).
+
+    `images` `(N, K, H, W[, C])` (float16 is solved in float32); `mask` `(N, H, W)`, one
+    plane per capture even where they are the same: with one `(H, W)` plane broadcast inside,
+    XLA-CPU wrote $|b|$ and $1/|b|$ to memory (7 fusions, as `_finish` describes, against 5);
+    `sample_mask` `(N, K, H, W)` or None; `shared`: `host_constants(lights)`; `branch`
+    (`branch_of` the or of `l2_batch_flags`): the solve every capture takes, so one capture
+    that drops a sample sends the whole stack through the weighted solve, as one such pixel
+    does a single image. **Returns:** normals `(N, H, W, 3)`, albedo `(N, H, W[, C])`,
+    status, n_used and residual `(N, H, W)`; normals, albedo and residual in `dtype`."""
+    return _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, dtype)
+
+
+@functools.partial(jax.jit, static_argnames=("branch", "dtype"), donate_argnums=0,
+                   keep_unused=True)
+def l2_batch_solve_into(out, images, lights, mask, sample_mask, thresholds, shared, *, branch,
+                        dtype):
+    """`l2_batch_solve` into the buffers of `out`, the five arrays of an earlier result of
+    the same shapes (donated). Their values are not read; `keep_unused` keeps them arguments
+    so that XLA writes each output into its buffer (no fresh memory, no page faults)."""
+    return _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, dtype)
