@@ -10,6 +10,9 @@ Captures that share their lights are solved as one image (`_l2_shared_lights`); 
 capture-by-capture path (`_l2_in_place`). `into_threshold_median_s` times that path's two
 writes on each side of `INTO_MAX_PLANES` (`ps/_l2.py`); on code from before that constant (run
 with `PYTHONPATH` at an older checkout) those rows are left out.
+`--emitters` times the one-image solve compiled with XLA-CPU's default and older emitters
+(results/batch_emitters.json), which chose `_BATCH_PROGRAMS` in `ps/_l2.py`; `--copy` times
+moving an unaligned numpy stack to the device (results/batch_copy.json).
 The 64-capture run is a fresh process (`--peak-rss N CHUNK`) whose peak resident memory
 (`ru_maxrss`) is recorded, input stack included. Each row also records the minor page faults
 of one more call (`page_faults`): first writes to pages the allocator just took from the
@@ -18,6 +21,7 @@ kernel, which fresh `(N, ...)` outputs pay on every batch.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import pathlib
@@ -109,6 +113,74 @@ def into_threshold(caps5, lights5, caps12, lights12, mask, rounds=10):
                 jax.block_until_ready(f())
                 times[k].append(time.perf_counter() - t)
     return {k: float(np.median(v)) for k, v in times.items()}
+
+
+def emitters(rounds=8):
+    """The one-image batch solve (`ps/_l2.py`, `_BATCH_PROGRAMS`) compiled with XLA-CPU's
+    default and older emitters, 8 captures of 1 MP, K=5 and K=12 clean and K=12 weighted:
+    medians of `rounds` interleaved rounds, in ms (`--emitters` ->
+    results/batch_emitters.json)."""
+    from jaxps.core._host import OLDER_EMITTERS
+    from jaxps.ps import _l2
+    from jaxps.ps._photometric_stereo import _sample_thresholds
+
+    programs = {"default": jax.jit(_l2._batch_solve, static_argnames=("branch", "dtype")),
+                "older": jax.jit(_l2._batch_solve, static_argnames=("branch", "dtype"),
+                                 compiler_options=OLDER_EMITTERS)}
+    thresholds = tuple(jnp.asarray(t, np.float32) for t in _sample_thresholds())
+    fns = {}
+    for k in (5, 12):
+        caps, lights, mask = captures(N, k=k)
+        lights = np.asarray(lights, np.float64)
+        lights /= np.linalg.norm(lights, axis=-1, keepdims=True)
+        args = (jax.device_put(aligned(caps)), jax.device_put(lights.astype(np.float32)),
+                jax.device_put(aligned(np.broadcast_to(mask, (N, *mask.shape)))), None,
+                thresholds, jax.device_put(_l2.host_constants(lights)))
+        for branch in ("all_used", "weighted_finite") if k == 12 else ("all_used",):
+            for name, program in programs.items():
+                fns[f"k{k}_{branch}_{name}"] = functools.partial(
+                    program, *args, branch=branch, dtype=np.dtype(np.float32))
+    times = {k: [] for k in fns}
+    for f in fns.values():
+        jax.block_until_ready(f())
+    for _ in range(rounds):
+        for k, f in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(f())
+            times[k].append(time.perf_counter() - t)
+    res = {"env": environment(), "shape": [N, "K", H, W], "rounds": rounds,
+           "median_ms": {k: 1e3 * float(np.median(v)) for k, v in times.items()}}
+    OUT.mkdir(exist_ok=True)
+    (OUT / "batch_emitters.json").write_text(json.dumps(res, indent=1))
+    print(json.dumps(res["median_ms"], indent=1))
+
+
+def copies(repeats=5):
+    """An unaligned numpy stack of 8 captures of 1 MP x 5 moved to the device: by
+    `jax.device_put` (its own copy), and by `core._host.aligned` on one thread and on every
+    core, then `device_put` in place. Medians in ms (`--copy` -> results/batch_copy.json)."""
+    from jaxps.core._host import cpu_cores
+
+    caps = captures(N)[0]
+    if caps.ctypes.data % 64 == 0:  # numpy's allocation happened to be aligned: shift it
+        caps = np.frombuffer(np.empty(caps.nbytes + 16, np.uint8)[16:], np.float32).reshape(
+            caps.shape)
+    fns = {"device_put": lambda: jax.device_put(caps),
+           "aligned_1_thread": lambda: jax.device_put(aligned(caps)),
+           f"aligned_{cpu_cores()}_threads": lambda: jax.device_put(
+               aligned(caps, threads=cpu_cores()))}
+    times = {k: [] for k in fns}
+    for _ in range(repeats):
+        for k, f in fns.items():
+            t = time.perf_counter()
+            jax.block_until_ready(f())
+            times[k].append(time.perf_counter() - t)
+    res = {"env": environment(), "shape": list(caps.shape), "address_mod_64":
+           caps.ctypes.data % 64, "median_ms": {k: 1e3 * float(np.median(v))
+                                                for k, v in times.items()}}
+    OUT.mkdir(exist_ok=True)
+    (OUT / "batch_copy.json").write_text(json.dumps(res, indent=1))
+    print(json.dumps(res["median_ms"], indent=1))
 
 
 def peak_rss(n, chunk):
@@ -268,5 +340,9 @@ if __name__ == "__main__":
     if "--peak-rss" in sys.argv:
         i = sys.argv.index("--peak-rss")
         peak_rss(int(sys.argv[i + 1]), int(sys.argv[i + 2]))
+    elif "--emitters" in sys.argv:
+        emitters()
+    elif "--copy" in sys.argv:
+        copies()
     else:
         main()

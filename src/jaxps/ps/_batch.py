@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ..core._host import aligned_empty, cpu_cores, cpu_top_level, fill_on_threads
+from ..core._host import aligned, aligned_empty, cpu_cores, cpu_top_level, fill_on_threads
 from ..lights._directions import validate_lights
 from ._l2 import (
     INTO_MAX_PLANES,
@@ -33,7 +33,6 @@ from ._l2 import (
     host_constants,
     l2_batch_flags,
     l2_batch_solve,
-    l2_batch_solve_into,
     l2_branch,
     l2_into,
     l2_solve,
@@ -150,8 +149,8 @@ def _l2_shared_lights(images, lights, mask, sample_mask, shared_mask, options, c
     """The L2 batch of captures that share their lights, on one device: each chunk (by
     default every capture) solved as one image of N times the pixels. One flag pass over the
     chunk comes back to the host (`l2_batch_flags`), then one program writes all five
-    `(N, ...)` outputs, each in one pass on all threads (`l2_batch_solve`): into `out`'s
-    buffers when given (`l2_batch_solve_into`). Chunks of a longer batch are copied into the
+    `(N, ...)` outputs, each in one pass on all threads (`l2_batch_solve`), into `out`'s
+    buffers when given. Chunks of a longer batch are copied into the
     stacked outputs (`_write_block`). Capture by capture, a clean capture's program wrote
     each output through a `dynamic-update-slice` that XLA-CPU ran on one thread, and any
     other capture's was copied in after its solve (docs/speed.md, "Many captures")."""
@@ -168,19 +167,20 @@ def _l2_shared_lights(images, lights, mask, sample_mask, shared_mask, options, c
     def solve(sl, into=None):
         whole = sl.stop - sl.start == n
         x = images if whole else images[sl]
-        x = x if isinstance(x, jax.Array) else jax.device_put(x)  # in place when aligned
+        # in place when aligned; else copied on every core (`aligned`)
+        x = x if isinstance(x, jax.Array) else jax.device_put(aligned(x, threads=cpu_cores()))
         if shared_mask:  # one plane per capture: see `l2_batch_solve`
             msk = aligned_empty((sl.stop - sl.start, h, w), bool)
             msk[...] = mask
         else:
             msk = mask[sl]
         msk = jax.device_put(msk)
-        smask = None if sample_mask is None else jax.device_put(sample_mask[sl])
+        smask = None if sample_mask is None else jax.device_put(
+            aligned(sample_mask[sl], threads=cpu_cores()))
         flags = np.asarray(l2_batch_flags(x, msk, smask, thresholds, consts))
         args = (x, lt, msk, smask, thresholds, consts)
-        kw = {"branch": branch_of(int(np.bitwise_or.reduce(flags))), "dtype": dtype}
-        return l2_batch_solve(*args, **kw) if into is None else l2_batch_solve_into(into, *args,
-                                                                                    **kw)
+        return l2_batch_solve(*args, branch=branch_of(int(np.bitwise_or.reduce(flags))),
+                              dtype=dtype, out=into)
 
     if step >= n:
         return PSResult(*solve(slice(0, n), out))

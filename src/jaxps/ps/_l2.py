@@ -18,14 +18,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
-from ..core._host import cpu_top_level
+from ..core._host import OLDER_EMITTERS, CpuTuned, cpu_top_level
 from ..core._linalg import REL_DET_MIN, normal_equations, solve3
 from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
 __all__ = ["INTO_MAX_PLANES", "PSResult", "branch_of", "host_constants", "l2_batch_flags",
-           "l2_batch_solve", "l2_batch_solve_into", "l2_branch", "l2_into", "l2_needs_weights",
+           "l2_batch_solve", "l2_branch", "l2_into", "l2_needs_weights",
            "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
 
 
@@ -493,8 +493,27 @@ def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, 
     return normal.astype(dtype), albedo.astype(dtype), status, n_used, residual.astype(dtype)
 
 
-@functools.partial(jax.jit, static_argnames=("branch", "dtype"))
-def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, branch, dtype):
+def _batch_solve_into(out, *args, **kwargs):
+    del out  # donated: XLA writes each output into its buffer (`keep_unused` keeps it)
+    return _batch_solve(*args, **kwargs)
+
+
+_STATIC = ("branch", "dtype")
+_INTO = {"donate_argnums": 0, "keep_unused": True}
+# (into `out`, every sample used) -> program. The every-sample-used solve takes XLA-CPU's
+# older emitters, as `photometric_stereo`'s does: at 8 x 1 MP 93.3 against 127.9 ms (K=5)
+# and 141.1 against 183.2 ms (K=12); the weighted solve was slower with them (341.1 against
+# 263.7 ms at K=12). Medians of 8 interleaved rounds, `bench_batch.py --emitters`.
+_BATCH_PROGRAMS = {
+    (False, False): jax.jit(_batch_solve, static_argnames=_STATIC),
+    (True, False): jax.jit(_batch_solve_into, static_argnames=_STATIC, **_INTO),
+    (False, True): CpuTuned(_batch_solve, OLDER_EMITTERS, static_argnames=_STATIC),
+    (True, True): CpuTuned(_batch_solve_into, OLDER_EMITTERS, static_argnames=_STATIC, **_INTO),
+}
+
+
+def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, branch, dtype,
+                   out=None):
     """N captures that share their `(K, 3)` lights solved as one image of N times the pixels:
     each output is one pass over the stack, on all threads, written straight into its
     `(N, ...)` array (no per-capture program, no copy).
@@ -505,16 +524,13 @@ def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, bra
     `sample_mask` `(N, K, H, W)` or None; `shared`: `host_constants(lights)`; `branch`
     (`branch_of` the or of `l2_batch_flags`): the solve every capture takes, so one capture
     that drops a sample sends the whole stack through the weighted solve, as one such pixel
-    does a single image. **Returns:** normals `(N, H, W, 3)`, albedo `(N, H, W[, C])`,
-    status, n_used and residual `(N, H, W)`; normals, albedo and residual in `dtype`."""
-    return _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, dtype)
+    does a single image; `out`: the five arrays of an earlier result of the same shapes,
+    donated, whose buffers take the outputs (no fresh memory, so no page faults).
 
-
-@functools.partial(jax.jit, static_argnames=("branch", "dtype"), donate_argnums=0,
-                   keep_unused=True)
-def l2_batch_solve_into(out, images, lights, mask, sample_mask, thresholds, shared, *, branch,
-                        dtype):
-    """`l2_batch_solve` into the buffers of `out`, the five arrays of an earlier result of
-    the same shapes (donated). Their values are not read; `keep_unused` keeps them arguments
-    so that XLA writes each output into its buffer (no fresh memory, no page faults)."""
-    return _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, dtype)
+    **Returns:** normals `(N, H, W, 3)`, albedo `(N, H, W[, C])`, status, n_used and
+    residual `(N, H, W)`; normals, albedo and residual in `dtype`."""
+    program = _BATCH_PROGRAMS[out is not None, branch == "all_used"]
+    args = (images, lights, mask, sample_mask, thresholds, shared)
+    if out is not None:
+        args = (out, *args)
+    return program(*args, branch=branch, dtype=dtype)
