@@ -5,11 +5,8 @@ Run: `OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_batch.py [--
 [--out PATH]` -> benchmarks/results/batch.json (or PATH) and batch.png. Baseline in the same
 run: N single calls. The `_dropped` rows set a shadow threshold at the 5th percentile of the
 samples in the mask, so every capture takes the weighted solve; the `_k12` rows take 12 lights.
-Captures that share their lights are solved as one image (`_l2_shared_lights`); the
-`lights_per_capture` rows give the same lights once per capture, which takes the
-capture-by-capture path (`_l2_in_place`). `into_threshold_median_s` times that path's two
-writes on each side of `INTO_MAX_PLANES` (`ps/_l2.py`); on code from before that constant (run
-with `PYTHONPATH` at an older checkout) those rows are left out.
+The batch solves the stack as one image (`_l2_one_image`); the `lights_per_capture` rows give
+the same lights once per capture, `(N, K, 3)`.
 `--emitters` times the one-image solve compiled with XLA-CPU's default and older emitters
 (results/batch_emitters.json), which chose `_BATCH_PROGRAMS` in `ps/_l2.py`; `--copy` times
 moving an unaligned numpy stack to the device (results/batch_copy.json).
@@ -37,7 +34,6 @@ import numpy as np
 
 import jaxps
 from jaxps.core._host import aligned
-from jaxps.ps import _batch
 from jaxps.ps._batch import _batched_fn
 
 OUT = pathlib.Path(__file__).resolve().parent / "results"
@@ -45,7 +41,6 @@ QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 # --quick (used by `python -m benchmarks --quick`): 256x320, for a smoke run, marked in the JSON.
 H, W, K, N = (256, 320, 5, 2) if QUICK else (1024, 1280, 5, 8)
 N_BIG = 8 if QUICK else 64
-TWO_WRITES = hasattr(_batch, "INTO_MAX_PLANES")
 
 
 try:
@@ -69,50 +64,6 @@ def captures(n, seed=0, k=K):
     caps = np.stack([base * rng.uniform(0.85, 1.15, (k, 1, 1)).astype(np.float32)
                      for _ in range(n)]).astype(np.float32)
     return caps, lights, np.asarray(scene.mask)
-
-
-def into_max_planes(planes, fn):
-    """`fn` with the batch's one-program write (`l2_into`) allowed up to `planes` sample
-    planes: 0 sends every capture through the solve-then-copy path."""
-    def run():
-        saved = _batch.INTO_MAX_PLANES
-        _batch.INTO_MAX_PLANES = planes
-        try:
-            return fn()
-        finally:
-            _batch.INTO_MAX_PLANES = saved
-    return run
-
-
-def into_threshold(caps5, lights5, caps12, lights12, mask, rounds=10):
-    """Both writes of the batch on each side of `INTO_MAX_PLANES`, interleaved (`rounds` x 3
-    calls each, so that the machine's load hits them alike): median seconds per batch of the
-    one-program write (`l2_into`) and of solve-then-copy, fresh outputs and, at K=5, `out=`."""
-    previous = {}
-
-    def batch(caps, lights, planes, reuse=False):
-        def f():
-            out = previous.pop(planes, None) if reuse else None
-            res = jaxps.photometric_stereo_batch(caps, lights, mask=mask, out=out)
-            if reuse:
-                previous[planes] = res
-            return res
-        return into_max_planes(planes, f)
-
-    fns = {"k5_one_program": batch(caps5, lights5, 5), "k5_copy": batch(caps5, lights5, 0),
-           "k5_out_one_program": batch(caps5, lights5, 5, True),
-           "k5_out_copy": batch(caps5, lights5, 0, True),
-           "k12_one_program": batch(caps12, lights12, 12), "k12_copy": batch(caps12, lights12, 0)}
-    times = {k: [] for k in fns}
-    for f in fns.values():
-        jax.block_until_ready(f())
-    for _ in range(rounds):
-        for k, f in fns.items():
-            for _ in range(3):
-                t = time.perf_counter()
-                jax.block_until_ready(f())
-                times[k].append(time.perf_counter() - t)
-    return {k: float(np.median(v)) for k, v in times.items()}
 
 
 def emitters(rounds=8):
@@ -209,9 +160,8 @@ def main():
     caps12, lights12, _ = captures(N, k=12)
     caps12 = aligned(caps12)
     lax_map = _batched_fn("l2", {}, True, True, None)
-    # the same lights given once per capture: the capture-by-capture path (`_l2_in_place`)
+    # the same lights given once per capture, `(N, K, 3)`
     per_capture = np.broadcast_to(lights, (N, *np.shape(lights)))
-    per_capture12 = np.broadcast_to(lights12, (N, *np.shape(lights12)))
 
     def stream(**options):  # a stream of batches, each written into the previous result
         previous = []
@@ -257,12 +207,8 @@ def main():
     }
     rows["batch_l2_aligned_lights_per_capture"] = lambda: jaxps.photometric_stereo_batch(
         caps_aligned, per_capture, mask=mask)
-    if TWO_WRITES:  # each side of `INTO_MAX_PLANES` (lights per capture): K=5 solved then
-        # copied, K=12 in one program
-        rows["batch_l2_aligned_copy_path"] = into_max_planes(
-            0, lambda: jaxps.photometric_stereo_batch(caps_aligned, per_capture, mask=mask))
-        rows["batch_l2_aligned_k12_one_program"] = into_max_planes(
-            12, lambda: jaxps.photometric_stereo_batch(caps12, per_capture12, mask=mask))
+    rows["batch_l2_aligned_lights_per_capture_dropped"] = lambda: jaxps.photometric_stereo_batch(
+        caps_aligned, per_capture, mask=mask, shadow_threshold=threshold)
     for name, fn in rows.items():
         _, first, run = timed(fn, repeats=5)
         res[name] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run,
@@ -285,12 +231,10 @@ def main():
             ("batch_over_single_throughput_aligned_k12", "batch_l2_aligned_k12",
              "single_calls_l2_aligned_k12"),
             ("lights_per_capture_over_single_throughput_aligned",
-             "batch_l2_aligned_lights_per_capture", "single_calls_l2_aligned")):
+             "batch_l2_aligned_lights_per_capture", "single_calls_l2_aligned"),
+            ("lights_per_capture_over_single_throughput_aligned_dropped",
+             "batch_l2_aligned_lights_per_capture_dropped", "single_calls_l2_aligned_dropped")):
         res[key] = res[batch]["captures_per_s"] / res[single]["captures_per_s"]
-    if TWO_WRITES:
-        res["into_threshold_median_s"] = into_threshold(caps_aligned, per_capture, caps12,
-                                                        per_capture12, mask,
-                                                        rounds=2 if QUICK else 10)
     chunk = 8
     out = subprocess.run([sys.executable, __file__, "--peak-rss", str(N_BIG), str(chunk)]
                          + (["--quick"] if QUICK else []), capture_output=True, text=True,
@@ -323,8 +267,7 @@ def main():
         "batch_l2_aligned_dropped_reusing_out": "batch, out=\n(dropped)",
         "batch_l2_aligned_k12": "batch\n(K=12)", "single_calls_l2_aligned_k12": "singles\n(K=12)",
         "batch_l2_aligned_lights_per_capture": "batch, lights\nper capture",
-        "batch_l2_aligned_copy_path": "per capture,\ncopy",
-        "batch_l2_aligned_k12_one_program": "per capture,\nK=12 one program"}
+        "batch_l2_aligned_lights_per_capture_dropped": "lights per\ncapture, dropped"}
     labels = [labels[k] for k in rows] + ["semi-cal.\n(one)"]
     vals = [res[k]["run_s"] / N for k in rows] + [res["semi_calibrated_one_capture"]["run_s"]]
     plt.figure(figsize=(18, 3.2))

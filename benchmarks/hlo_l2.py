@@ -1,12 +1,14 @@
 """Passes over memory in the compiled L2 programs: loop fusions and copies in XLA's HLO.
 
-Counts, for a 1280x1024 grey capture with K=5 shared lights, the fusions and copies of the
-single-call program (`photometric_stereo`) and of the batch's three programs: its flag pass
-(`l2_needs_weights`), its solve (`l2_solve`, every sample used or weighted; grey `(K, H, W)`
-input as the batch passes it, and with a channel axis added first) and its in-place write
-(`l2_write`), and the two traced as one program (`l2_into`, which the batch takes for light
-captures): each `dynamic-update-slice` then fuses into the pass that computes its values. For
-each, how many fusions XLA-CPU splits across threads (`outer_dimension_partitions`).
+Counts, for 1280x1024 grey captures with K=5 lights, the fusions and copies of the
+single-call program (`photometric_stereo`) and its flag pass (`l2_needs_weights`), and of
+the batch's programs for 8 captures solved as one image: its flag pass (`l2_batch_flags`) and
+its solve (`l2_batch_solve`: every sample used, with XLA-CPU's older emitters as the batch
+compiles it, or weighted; lights shared or per capture; into fresh outputs or into `out`'s
+donated buffers), and the every-sample-used solve given one `(H, W)` mask broadcast inside the
+program instead of one plane per capture. For each, how many fusions XLA-CPU splits across
+threads (`outer_dimension_partitions`), and for the `out` programs how many outputs alias a
+donated input (`aliased_outputs`).
 
 Run: `PYTHONPATH=src python benchmarks/hlo_l2.py` -> `benchmarks/results/hlo_l2.json`.
 """
@@ -22,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxps
-from jaxps.ps._l2 import host_constants, l2_into, l2_needs_weights, l2_solve, l2_write
+from jaxps.ps import _l2
 
 OUT = pathlib.Path(__file__).resolve().parent / "results" / "hlo_l2.json"
 N, K, H, W = 8, 5, 1024, 1280
@@ -30,51 +32,65 @@ N, K, H, W = 8, 5, 1024, 1280
 
 def counts(text: str) -> dict:
     """Fusion and copy instructions in a compiled module (all computations)."""
+    header = text.split("\n", 1)[0]  # HloModule ..., input_output_alias={ {0}: (0, {}, ...
     return {"fusions": len(re.findall(r"= \S+ fusion\(", text)),
             "copies": len(re.findall(r"= \S+ copy\(", text)),
-            "partitioned_fusions": text.count("outer_dimension_partitions")}
+            "partitioned_fusions": text.count("outer_dimension_partitions"),
+            "aliased_outputs": len(re.findall(r"\{\d+\}: \(\d+, \{\}, (may|must)-alias\)",
+                                              header))}
+
+
+def compiled(program, *args, **kwargs) -> dict:
+    return counts(program.lower(*args, **kwargs).compile().as_text())
 
 
 def main():
+    f32 = jnp.float32
     lights = np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
     lights /= np.linalg.norm(lights, axis=1, keepdims=True)
-    images = jax.ShapeDtypeStruct((K, H, W), jnp.float32)
+    images = jax.ShapeDtypeStruct((K, H, W), f32)
     mask = jax.ShapeDtypeStruct((H, W), jnp.bool_)
-    thresholds = tuple(jax.ShapeDtypeStruct((), jnp.float32) for _ in range(3))
-    shared = host_constants(lights)
-    lt = jax.ShapeDtypeStruct((K, 3), jnp.float32)
-    out = (jax.ShapeDtypeStruct((N, H, W, 3), jnp.float32),
-           jax.ShapeDtypeStruct((N, H, W), jnp.float32),
+    thresholds = tuple(jax.ShapeDtypeStruct((), f32) for _ in range(3))
+    shared = _l2.host_constants(lights)
+    stack = jax.ShapeDtypeStruct((N, K, H, W), f32)
+    masks = jax.ShapeDtypeStruct((N, H, W), jnp.bool_)
+    lt = jax.ShapeDtypeStruct((K, 3), f32)
+    per_capture = (jax.ShapeDtypeStruct((N, K, 3), f32),
+                   tuple(np.stack([c] * N) for c in shared))
+    out = (jax.ShapeDtypeStruct((N, H, W, 3), f32), jax.ShapeDtypeStruct((N, H, W), f32),
            jax.ShapeDtypeStruct((N, H, W), jnp.int32), jax.ShapeDtypeStruct((N, H, W), jnp.int32),
-           jax.ShapeDtypeStruct((N, H, W), jnp.float32))
-    flat = (jax.ShapeDtypeStruct((H * W, 3), jnp.float32),
-            *(jax.ShapeDtypeStruct((H * W,), d)
-              for d in (jnp.float32, jnp.int32, jnp.int32, jnp.float32)))
-    single = jax.jit(lambda x: jaxps.photometric_stereo(x, lights))
+           jax.ShapeDtypeStruct((N, H, W), f32))
+    kw = {"dtype": np.dtype(np.float32)}
 
-    def solve(x, weighted):
-        return l2_solve.lower(x, lt, mask, None, thresholds, shared, weighted=weighted,
-                              dtype=np.float32).compile().as_text()
+    def batch(branch, into=False, lights_and_consts=(lt, shared)):
+        program = _l2._BATCH_PROGRAMS[into, branch == "all_used"]
+        program = getattr(program, "tuned", None) or program  # the CPU's compile options
+        li, consts = lights_and_consts
+        args = (stack, li, masks, None, thresholds, consts)
+        return compiled(program, *((out,) if into else ()), *args, branch=branch, **kw)
 
-    def one_program(weighted):
-        return l2_into.lower(out, 0, images, lt, mask, None, thresholds, shared,
-                             weighted=weighted, dtype=np.float32).compile().as_text()
+    broadcast_mask = jax.jit(
+        lambda x, m, t, s: _l2._batch_solve(x, lt, jnp.broadcast_to(m, (N, H, W)), None, t, s,
+                                            "all_used", kw["dtype"]),
+        compiler_options=_l2.OLDER_EMITTERS)
     res = {
         "shape": [K, H, W], "batch": N,
-        "photometric_stereo": counts(single.lower(images).compile().as_text()),
-        "l2_solve": counts(solve(images, weighted=False)),
-        "l2_solve_weighted": counts(solve(images, weighted=True)),
-        # The grey frames given a channel axis inside the program (as `_run` does for
-        # `ps_l2`), then solved as `(K, H, W, 1)`.
-        "l2_solve_channel_axis_added": counts(jax.jit(
-            lambda x, li, m, t, s: l2_solve(x[..., None], li, m, None, t, s, weighted=False,
-                                            dtype=np.float32)
-        ).lower(images, lt, mask, thresholds, shared).compile().as_text()),
-        "l2_write": counts(l2_write.lower(out, 0, flat).compile().as_text()),
-        "l2_into": counts(one_program(weighted=False)),
-        "l2_into_weighted": counts(one_program(weighted=True)),
-        "l2_needs_weights": counts(l2_needs_weights.lower(images, mask, None, thresholds,
-                                                          shared).compile().as_text()),
+        "photometric_stereo": compiled(jax.jit(lambda x: jaxps.photometric_stereo(x, lights)),
+                                       images),
+        "l2_needs_weights": compiled(_l2.l2_needs_weights, images, mask, None, thresholds,
+                                     shared),
+        "l2_batch_flags": compiled(_l2.l2_batch_flags, stack, masks, None, thresholds, shared),
+        "l2_batch_solve": batch("all_used"),
+        "l2_batch_solve_weighted": batch("weighted"),
+        "l2_batch_solve_weighted_finite": batch("weighted_finite"),
+        "l2_batch_solve_into_out": batch("all_used", into=True),
+        "l2_batch_solve_weighted_into_out": batch("weighted_finite", into=True),
+        "l2_batch_solve_lights_per_capture": batch("all_used", lights_and_consts=per_capture),
+        "l2_batch_solve_weighted_lights_per_capture": batch("weighted_finite",
+                                                            lights_and_consts=per_capture),
+        # One `(H, W)` mask broadcast to the stack inside the program (not kept)
+        "l2_batch_solve_one_mask_broadcast": compiled(broadcast_mask, stack, mask, thresholds,
+                                                      shared),
     }
     OUT.parent.mkdir(exist_ok=True)
     OUT.write_text(json.dumps(res, indent=1))

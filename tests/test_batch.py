@@ -101,9 +101,8 @@ def test_batch_l2_equals_single_calls_with_dropped_samples(colour, dtype):
 
 
 def test_batch_l2_clean_colour_equals_single_calls():
-    """Colour captures that drop no sample (15 planes: solved on all threads, then copied into
-    the stacked outputs, where a grey one is solved and written in one program) equal single
-    calls."""
+    """Colour captures that drop no sample (the every-sample-used solve over 15 planes, one
+    albedo per channel) equal single calls."""
     scenes, images = _captures()
     images = images[..., None] * np.float32([1.0, 0.8, 0.6])
     lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
@@ -117,11 +116,12 @@ def test_batch_l2_clean_colour_equals_single_calls():
         np.testing.assert_array_equal(batch.status[i], single.status)
 
 
-def test_batch_l2_in_place_equals_single_calls_with_per_capture_lights():
-    """The one-device L2 batch (each capture solved in place into the stacked outputs) gives
-    the single call's arrays (to float32 rounding: XLA fuses the two programs differently),
-    with per-capture lights and a capture that needs the weighted solve (a NaN sample) between
-    two that do not, from numpy and device input; the lax.map path (`vmap_size`) too."""
+def test_batch_l2_per_capture_lights_equals_single_calls():
+    """The one-device L2 batch with lights per capture (`(N, K, 3)`, each capture's constants
+    along a leading axis) gives the single call's arrays (to float32 rounding: XLA fuses the
+    two programs differently), with a capture that needs the weighted solve (a NaN sample)
+    between two that do not, which sends the stack through it, from numpy and device input;
+    the lax.map path (`vmap_size`) too. Without the NaN, the every-sample-used solve."""
     import jax
 
     scenes, images = _captures()
@@ -142,10 +142,16 @@ def test_batch_l2_in_place_equals_single_calls_with_per_capture_lights():
     mapped = jaxps.photometric_stereo_batch(images, lights, mask=mask, vmap_size=1)
     np.testing.assert_allclose(mapped.normals, batch.normals, atol=1e-6)
     np.testing.assert_array_equal(mapped.status, batch.status)
+    images[1, 3, 5, 7] = images[0, 3, 5, 7]
+    clean = jaxps.photometric_stereo_batch(images, lights, mask=mask)
+    for i in range(3):
+        single = jaxps.photometric_stereo(images[i], lights[i], mask=mask)
+        np.testing.assert_allclose(clean.normals[i], single.normals, atol=1e-6)
+        np.testing.assert_array_equal(clean.status[i], single.status)
 
 
 def test_batch_l2_shared_lights_one_image_equals_single_calls():
-    """Captures that share their lights are solved as one image (`_l2_shared_lights`): one
+    """Captures that share their lights are solved as one image (`_l2_one_image`): one
     capture with a NaN sample sends the stack through the weighted solve, whose results equal
     the single calls (the clean ones to float32 rounding), from numpy and device input, in
     one chunk or in chunks of 2 (copied into the stacked outputs), fresh or into `out`."""

@@ -1,15 +1,13 @@
-"""Many captures at once: stacked `(N, ...)` outputs, as one image, per capture, or mapped.
+"""Many captures at once: stacked `(N, ...)` outputs, solved as one image, on threads, or mapped.
 
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
-captures of the same size into `(N, ...)` outputs. On one device the L2 solve of captures that
-share their lights treats the stack as one image of N times the pixels (`_l2_shared_lights`);
-with lights per capture it runs capture by capture and writes each one's results into the
-stacked outputs in place (`_l2_in_place`). On one CPU the loop solvers (`irls`, `sbl`) run
-captures on threads (`_captures_on_threads`). Other methods map the single-capture solver over
-the capture axis in one jitted call with `jax.lax.map` (in sequence, or in `jax.vmap` groups of
-`vmap_size`), and when several devices are present the capture axis is split across them with
-`jax.sharding` (a 1-D mesh named `"captures"`). The results equal N separate
-`photometric_stereo` calls.
+captures of the same size into `(N, ...)` outputs. On one device the L2 solve treats the stack
+as one image of N times the pixels (`_l2_one_image`). On one CPU the loop solvers (`irls`,
+`sbl`) run captures on threads (`_captures_on_threads`). Other methods map the single-capture
+solver over the capture axis in one jitted call with `jax.lax.map` (in sequence, or in
+`jax.vmap` groups of `vmap_size`), and when several devices are present the capture axis is
+split across them with `jax.sharding` (a 1-D mesh named `"captures"`). The results equal N
+separate `photometric_stereo` calls.
 `jaxps.reconstruct_many` (`cli/_reconstruct.py`) runs capture folders through loading, quality
 checks and the solve with one progress bar and a summary table.
 """
@@ -26,18 +24,7 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._host import aligned, aligned_empty, cpu_cores, cpu_top_level, fill_on_threads
 from ..lights._directions import validate_lights
-from ._l2 import (
-    INTO_MAX_PLANES,
-    PSResult,
-    branch_of,
-    host_constants,
-    l2_batch_flags,
-    l2_batch_solve,
-    l2_branch,
-    l2_into,
-    l2_solve,
-    l2_write,
-)
+from ._l2 import PSResult, branch_of, host_constants, l2_batch_flags, l2_batch_solve
 from ._photometric_stereo import (
     _BANDED_SOLVERS,
     PS_METHODS,
@@ -48,8 +35,7 @@ from ._photometric_stereo import (
 __all__ = ["photometric_stereo_batch"]
 
 _CACHE: dict = {}
-# Options of the L2 solve that `_l2_shared_lights` and `_l2_in_place` handle; any other goes
-# the general way.
+# Options of the L2 solve that `_l2_one_image` handles; any other goes the general way.
 _L2_OPTIONS = frozenset({"shadow_threshold", "saturation", "dark_threshold"})
 
 
@@ -144,43 +130,47 @@ def _check_out(out, n, shape, dtype):
     return arrays
 
 
-def _l2_shared_lights(images, lights, mask, sample_mask, shared_mask, options, chunk,
-                      out=None):
-    """The L2 batch of captures that share their lights, on one device: each chunk (by
-    default every capture) solved as one image of N times the pixels. One flag pass over the
-    chunk comes back to the host (`l2_batch_flags`), then one program writes all five
-    `(N, ...)` outputs, each in one pass on all threads (`l2_batch_solve`), into `out`'s
-    buffers when given. Chunks of a longer batch are copied into the
-    stacked outputs (`_write_block`). Capture by capture, a clean capture's program wrote
-    each output through a `dynamic-update-slice` that XLA-CPU ran on one thread, and any
-    other capture's was copied in after its solve (docs/speed.md, "Many captures")."""
+def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask, options,
+                  chunk, out=None):
+    """The L2 batch on one device: each chunk (by default every capture) solved as one image
+    of N times the pixels. One flag pass over the chunk comes back to the host
+    (`l2_batch_flags`), then one program writes all five `(N, ...)` outputs, each in one pass
+    on all threads (`l2_batch_solve`), into `out`'s buffers when given. Chunks of a longer
+    batch are copied into the stacked outputs (`_write_block`). Solved capture by capture,
+    a clean capture's program wrote each output through a `dynamic-update-slice` that
+    XLA-CPU ran on one thread, and any other capture's was copied in after its solve
+    (docs/speed.md, "Many captures")."""
     n, h, w = images.shape[0], images.shape[2], images.shape[3]
     dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
     solve_dtype = np.float32 if dtype == np.float16 else dtype
     thresholds = tuple(jnp.asarray(t, solve_dtype) for t in _sample_thresholds(**options))
     lights = np.asarray(lights, np.float64)
     lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
-    consts = jax.device_put(host_constants(lights))
-    lt = jax.device_put(lights.astype(solve_dtype))
+    # the pseudo-inverse etc. on the host: once, or per capture with a leading N axis
+    consts = (host_constants(lights) if shared_lights else
+              tuple(np.stack(c) for c in zip(*map(host_constants, lights))))
     step = n if chunk is None else min(chunk, n)
 
     def solve(sl, into=None):
-        whole = sl.stop - sl.start == n
-        x = images if whole else images[sl]
+        def part(a, per_capture=True):
+            return a if not per_capture or sl.stop - sl.start == n else a[sl]
+
+        x = part(images)
         # in place when aligned; else copied on every core (`aligned`)
         x = x if isinstance(x, jax.Array) else jax.device_put(aligned(x, threads=cpu_cores()))
         if shared_mask:  # one plane per capture: see `l2_batch_solve`
             msk = aligned_empty((sl.stop - sl.start, h, w), bool)
             msk[...] = mask
         else:
-            msk = mask[sl]
+            msk = part(mask)
         msk = jax.device_put(msk)
         smask = None if sample_mask is None else jax.device_put(
-            aligned(sample_mask[sl], threads=cpu_cores()))
-        flags = np.asarray(l2_batch_flags(x, msk, smask, thresholds, consts))
-        args = (x, lt, msk, smask, thresholds, consts)
-        return l2_batch_solve(*args, branch=branch_of(int(np.bitwise_or.reduce(flags))),
-                              dtype=dtype, out=into)
+            aligned(part(sample_mask), threads=cpu_cores()))
+        lt = jax.device_put(part(lights, not shared_lights).astype(solve_dtype))
+        cst = jax.device_put(tuple(part(c, not shared_lights) for c in consts))
+        flags = np.asarray(l2_batch_flags(x, msk, smask, thresholds, cst))
+        return l2_batch_solve(x, lt, msk, smask, thresholds, cst, dtype=dtype, out=into,
+                              branch=branch_of(int(np.bitwise_or.reduce(flags))))
 
     if step >= n:
         return PSResult(*solve(slice(0, n), out))
@@ -197,42 +187,6 @@ def _write_block(out, start, results):
     `start` on, in place (`out` is donated)."""
     return tuple(jax.lax.dynamic_update_slice_in_dim(o, r, start, 0)
                  for o, r in zip(out, results))
-
-
-def _l2_in_place(images, lights, mask, sample_mask, shared_mask, options, out=None):
-    """The L2 batch of captures with lights of their own `(N, K, 3)`, on one device, capture
-    by capture: the "some sample dropped" test (`ps_l2`'s `cond`) comes back to the host,
-    then the chosen solve writes the capture's results into the stacked outputs in place
-    (donated): `out`, or new zeroed arrays. A light capture (no sample dropped, at most
-    `INTO_MAX_PLANES` planes) is solved and written in one program (`l2_into`, no copy, its
-    passes on one thread); any other is solved on all threads (`l2_solve`), then copied in
-    (`l2_write`). Captures that share their lights take `_l2_shared_lights`."""
-    n = images.shape[0]
-    dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
-    solve_dtype = np.float32 if dtype == np.float16 else dtype
-    thresholds = tuple(jnp.asarray(t, solve_dtype) for t in _sample_thresholds(**options))
-    lights = np.asarray(lights, np.float64)
-    lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
-    mask = jax.device_put(mask) if shared_mask else mask
-    if out is None:
-        out = _l2_outputs(n, tuple(images.shape[2:]), dtype)
-    planes = int(np.prod(images.shape[1:2] + images.shape[4:]))  # K x C
-    for i in range(n):
-        x = images[i] if isinstance(images, jax.Array) else jax.device_put(images[i])
-        # the pseudo-inverse etc. on the host
-        lt, consts = jax.device_put(lights[i].astype(solve_dtype)), jax.device_put(
-            host_constants(lights[i]))
-        msk = mask if shared_mask else jax.device_put(mask[i])
-        smask = None if sample_mask is None else jax.device_put(sample_mask[i])
-        branch = l2_branch(x, msk, smask, thresholds, consts)
-        weighted = branch != "all_used"
-        args = (x, lt, msk, smask, thresholds, consts)
-        if weighted or planes > INTO_MAX_PLANES:
-            out = l2_write(out, i, l2_solve(*args, weighted=weighted, dtype=dtype,
-                                            all_finite=branch == "weighted_finite"))
-        else:
-            out = l2_into(out, i, *args, weighted=False, dtype=dtype)
-    return PSResult(*out)
 
 
 def _captures_on_threads(images, lights, mask, sample_mask, shared_lights, shared_mask,
@@ -281,18 +235,15 @@ def photometric_stereo_batch(
     - `chunk`: solve at most this many captures per call (bounds host/device memory); default
       all.
     - `vmap_size`: captures vectorised together with `jax.vmap` inside one call; the groups run
-      one after another (`jax.lax.map(..., batch_size=vmap_size)`). `None` (default) runs the
-      captures one after another, which on a CPU is the fastest: the pixels of one capture
-      already fill the cores, and under `vmap` the L2 solver's branch on "some sample dropped"
-      (a `lax.cond`) evaluates both sides. With `method="l2"` on one device, captures that
-      share their lights are then solved as one image of N times the pixels (each chunk in
-      one program; one capture that drops a sample sends its chunk through the weighted
-      solve, as one pixel does a single image), and captures with lights of their own one
-      after another, each writing its results in place into the stacked outputs (`chunk`
-      has nothing to bound there). So it is with `method="irls"` or `"sbl"` on one CPU:
-      each capture is then a call of its own, one per core at a time, whose results are
-      written into stacked outputs (XLA-CPU runs their `while_loop`s on one thread). See
-      docs/speed.md for the measured ratios.
+      one after another (`jax.lax.map(..., batch_size=vmap_size)`). `None` (default) is the
+      fastest on a CPU, where under `vmap` the L2 solver's branch on "some sample dropped" (a
+      `lax.cond`) evaluates both sides. With `method="l2"` on one device, the captures are
+      then solved as one image of N times the pixels: each chunk in one program, and one
+      capture that drops a sample sends its chunk through the weighted solve, as one pixel
+      does a single image. With `method="irls"` or `"sbl"` on one CPU, each capture is a call
+      of its own, one per core at a time, whose results are written into stacked outputs
+      (XLA-CPU runs their `while_loop`s on one thread). Other methods run the captures one
+      after another. See docs/speed.md for the measured ratios.
     - `out`: the `PSResult` of an earlier batch of the same shape and dtype, whose arrays are
       overwritten with this batch's results and returned (they are donated: the old result is
       unusable afterwards). For a stream of batches, pass each result back once it has been
@@ -344,10 +295,8 @@ def photometric_stereo_batch(
         if out is not None:
             out = _check_out(out, n, images.shape[2:],
                              jax.dtypes.canonicalize_dtype(images.dtype))
-        if shared_lights:
-            return _l2_shared_lights(images, lights, mask, sample_mask, shared_mask, options,
-                                     chunk, out)
-        return _l2_in_place(images, lights, mask, sample_mask, shared_mask, options, out)
+        return _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
+                             options, chunk, out)
     if out is not None:
         raise ValueError("out: reusing a result is supported for method='l2' on one device "
                          "with vmap_size=None only")

@@ -24,9 +24,8 @@ from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["INTO_MAX_PLANES", "PSResult", "branch_of", "host_constants", "l2_batch_flags",
-           "l2_batch_solve", "l2_branch", "l2_into", "l2_needs_weights",
-           "l2_solve", "l2_write", "ps_l2", "ps_l2_eager"]
+__all__ = ["PSResult", "branch_of", "host_constants", "l2_batch_flags", "l2_batch_solve",
+           "l2_branch", "l2_needs_weights", "ps_l2", "ps_l2_eager"]
 
 
 class PSResult(NamedTuple):
@@ -272,36 +271,44 @@ def _planes(images, sample_mask, mask, flat, batched=False):
     return x, usable, plane(mask)
 
 
-def _lift(kernel, in_axes, flat, batched=False):
+def _lift(kernel, in_axes, flat, batched=False, per_capture=False):
     """`kernel` over every pixel of `(H*W,)` planes if `flat`, else of `(H, W)` planes (of
-    `(N, H, W)` planes if `batched`)."""
+    `(N, H, W)` planes if `batched`, with the lights argument (the 4th) per capture, a leading
+    N axis on each leaf, if `per_capture`)."""
     lifted = jax.vmap(kernel, in_axes) if flat else jax.vmap(jax.vmap(kernel, in_axes), in_axes)
-    return jax.vmap(lifted, in_axes) if batched else lifted
+    if not batched:
+        return lifted
+    return jax.vmap(lifted, tuple(0 if i == 3 and per_capture else a
+                                  for i, a in enumerate(in_axes)))
 
 
 def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True, batched=False):
-    """`_pixel_all_used` over every pixel: the outputs, then the "re-solve needed" flags."""
+    """`_pixel_all_used` over every pixel: the outputs, then the "re-solve needed" flags.
+    `batched`: `(N, K, ...)` images as in `_planes`, `shared` for all (`(K, 3)` lights) or
+    per capture (`(N, K, 3)` lights, each constant with a leading N axis)."""
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
-    return _lift(_pixel_all_used, (0, axis, 0, None, None), flat, batched)(
+    per_capture = batched and shared[0].ndim == 3
+    return _lift(_pixel_all_used, (0, axis, 0, None, None), flat, batched, per_capture)(
         *_planes(images, sample_mask, mask, flat, batched), shared, thresholds)
 
 
 def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, all_finite=False,
                     batched=False):
     """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights
-    (`batched`: `(N, K, ...)` images with `(K, 3)` lights, as in `_planes`)."""
-    k = images.shape[1 if batched else 0]
+    (`batched`: `(N, K, ...)` images as in `_planes`, with `(K, 3)` or `(N, K, 3)` lights)."""
+    per_capture = batched and lights.ndim == 3
+    k = lights.shape[1 if per_capture else 0]
     per_pixel = lights.ndim == 4
     if per_pixel:
         lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
         lt = [[(lights[i, ..., p].reshape(-1) if flat else lights[i, ..., p]) for p in range(3)]
               for i in range(k)]
     else:
-        lt = [[lights[i, p] for p in range(3)] for i in range(k)]
+        lt = [[lights[..., i, p] for p in range(3)] for i in range(k)]
     axis = None if sample_mask is None else 0
     kernel = functools.partial(_pixel_weighted, all_finite=all_finite)
-    return _lift(kernel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched)(
-        *_planes(images, sample_mask, mask, flat, batched), lt, thresholds)
+    return _lift(kernel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched,
+                 per_capture)(*_planes(images, sample_mask, mask, flat, batched), lt, thresholds)
 
 
 def _stacked(out):
@@ -335,7 +342,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     pass with $L^+$ (`_pixel_all_used`); only if some pixel in the mask dropped a sample is the
     image solved again with per-pixel weights, a real branch outside `vmap` (under `vmap` over
     captures `lax.cond` runs both; `photometric_stereo_batch` makes the same choice on the
-    host, capture by capture, with `l2_needs_weights` and `l2_solve`).
+    host for a whole stack, with `l2_batch_flags` and `l2_batch_solve`).
     """
     h, w = images.shape[1:3]
     if shared is None and lights.ndim == 2:
@@ -377,9 +384,10 @@ def l2_needs_weights(images, mask, sample_mask, thresholds, shared):
     some pixel in `mask` must be solved by `_pixel_weighted` (a sample non-finite, saturated,
     shadowed or not in `sample_mask`) and bit 1 that some pixel in `mask` has a non-finite
     sample (one test of the sum of its samples: a sum that overflows counts as non-finite).
-    One reduction over the pixels' flags, as cheap as a single bool. Arguments as in
-    `l2_solve`; `mask` None is every pixel, and `thresholds` are cast to the images' dtype
-    here."""
+    One reduction over the pixels' flags, as cheap as a single bool. `images` `(K, H, W[,
+    C])`, `mask` `(H, W)` or None (every pixel), `sample_mask` `(K, H, W)` or None,
+    `thresholds` (cast to the images' dtype here) and `shared` (`host_constants(lights)`) as
+    `ps_l2` takes them."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     if mask is None:
@@ -408,58 +416,6 @@ def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:
                  branch=l2_branch(images, mask, sample_mask, thresholds, shared))
 
 
-@functools.partial(jax.jit, static_argnames=("weighted", "dtype", "all_finite"))
-def l2_solve(images, lights, mask, sample_mask, thresholds, shared, *, weighted, dtype,
-             all_finite=False):
-    """`ps_l2` of one capture without its `cond`: the solve `weighted` chooses, flat
-    (`all_finite`: the weighted solve's form for captures with no non-finite sample).
-
-    The batch's half of `ps_l2`: the branch is taken on the host (`l2_branch`), and the
-    results go into the stacked outputs by `l2_write` (or both in one program, `l2_into`).
-
-    `images` `(K, H, W)` or `(K, H, W, C)` (float16 is solved in float32); `shared`:
-    `host_constants(lights)`. **Returns:** normals `(H*W, 3)`, albedo `(H*W[, C])`, status,
-    n_used and residual `(H*W,)`; normals, albedo and residual in `dtype`.
-    """
-    if images.dtype == jnp.float16:
-        images = images.astype(jnp.float32)
-    if weighted:
-        res = _solve_weighted(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
-                              all_finite=all_finite)
-    else:
-        res = _solve_all_used(images, mask, sample_mask, thresholds,
-                              _cast_shared(shared, images.dtype))[:-1]
-    normal, albedo, status, n_used, residual = _stacked(res)
-    return normal.astype(dtype), albedo.astype(dtype), status, n_used, residual.astype(dtype)
-
-
-@functools.partial(jax.jit, donate_argnums=0)
-def l2_write(out, index, results):
-    """`l2_solve`'s `results` written into slot `index` of the stacked `(N, ...)` outputs
-    `out` (the five `PSResult` arrays), in place: `out` is donated."""
-    return tuple(jax.lax.dynamic_update_index_in_dim(o, r.reshape(o.shape[1:]), index, 0)
-                 for o, r in zip(out, results))
-
-
-@functools.partial(jax.jit, static_argnames=("weighted", "dtype"), donate_argnums=0)
-def l2_into(out, index, images, lights, mask, sample_mask, thresholds, shared, *, weighted,
-            dtype):
-    """`l2_write(out, index, l2_solve(...))` traced as one program. XLA-CPU then fuses each
-    output's `dynamic-update-slice` into the pass that computes its values (no copy), and runs
-    such a pass on one thread (`hlo_l2.py`). That beats a solve on all threads plus a copy only
-    while the passes are light: a capture that drops no sample and has at most
-    `INTO_MAX_PLANES` sample planes (docs/speed.md, "Many captures")."""
-    return l2_write(out, index, l2_solve(images, lights, mask, sample_mask, thresholds, shared,
-                                         weighted=weighted, dtype=dtype))
-
-
-# K x C up to which `l2_into` beats `l2_solve` + `l2_write` for clean captures on this
-# project's 2-core machine: `bench_batch.py` (`into_threshold_median_s`, 8 captures of 1 MP,
-# two runs) K=5 192-206 against 203-218 ms (`out=` 95-100 against 107-111), K=12 675 against
-# 280-288. With more cores the threshold can only fall, as only the copy path uses them.
-INTO_MAX_PLANES = 5
-
-
 def branch_of(flags: int) -> str:
     """`ps_l2`'s `branch` from the flags of `l2_needs_weights` (or their bitwise or)."""
     if not flags & 1:
@@ -469,8 +425,8 @@ def branch_of(flags: int) -> str:
 
 @jax.jit
 def l2_batch_flags(images, mask, sample_mask, thresholds, shared):
-    """`l2_needs_weights` of each capture of a stack that shares its lights: `(N,)` int32.
-    `images` `(N, K, H, W[, C])`, `mask` `(N, H, W)`, `sample_mask` `(N, K, H, W)` or None."""
+    """`l2_needs_weights` of each capture of a stack: `(N,)` int32. Arguments as
+    `l2_batch_solve` takes them."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
@@ -514,14 +470,16 @@ _BATCH_PROGRAMS = {
 
 def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, branch, dtype,
                    out=None):
-    """N captures that share their `(K, 3)` lights solved as one image of N times the pixels:
-    each output is one pass over the stack, on all threads, written straight into its
-    `(N, ...)` array (no per-capture program, no copy).
+    """N captures solved as one image of N times the pixels: each output is one pass over the
+    stack, on all threads, written straight into its `(N, ...)` array (no per-capture
+    program, no copy).
 
-    `images` `(N, K, H, W[, C])` (float16 is solved in float32); `mask` `(N, H, W)`, one
-    plane per capture even where they are the same: with one `(H, W)` plane broadcast inside,
-    XLA-CPU wrote $|b|$ and $1/|b|$ to memory (7 fusions, as `_finish` describes, against 5);
-    `sample_mask` `(N, K, H, W)` or None; `shared`: `host_constants(lights)`; `branch`
+    `images` `(N, K, H, W[, C])` (float16 is solved in float32); `lights` `(K, 3)` unit
+    vectors shared by all, or `(N, K, 3)`; `mask` `(N, H, W)`, one plane per capture even
+    where they are the same: with one `(H, W)` plane broadcast inside, XLA-CPU wrote $|b|$
+    and $1/|b|$ to memory (7 fusions against 5, `benchmarks/hlo_l2.py`), as `_finish`
+    describes; `sample_mask` `(N, K, H, W)` or None; `shared`: `host_constants(lights)`, or
+    each capture's stacked along a leading N axis; `branch`
     (`branch_of` the or of `l2_batch_flags`): the solve every capture takes, so one capture
     that drops a sample sends the whole stack through the weighted solve, as one such pixel
     does a single image; `out`: the five arrays of an earlier result of the same shapes,
