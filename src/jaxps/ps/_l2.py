@@ -477,7 +477,7 @@ def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, bra
     `images` `(N, K, H, W[, C])` (float16 is solved in float32); `lights` `(K, 3)` unit
     vectors shared by all, or `(N, K, 3)`; `mask` `(N, H, W)`, one plane per capture even
     where they are the same: with one `(H, W)` plane broadcast inside, XLA-CPU wrote $|b|$
-    and $1/|b|$ to memory (7 fusions against 5, `benchmarks/hlo_l2.py`), as `_finish`
+    and $1/|b|$ to memory (6 fusions against 4, `benchmarks/hlo_l2.py`), as `_finish`
     describes; `sample_mask` `(N, K, H, W)` or None; `shared`: `host_constants(lights)`, or
     each capture's stacked along a leading N axis; `branch`
     (`branch_of` the or of `l2_batch_flags`): the solve every capture takes, so one capture
