@@ -10,8 +10,10 @@ the same lights once per capture, `(N, K, 3)`.
 `--emitters` times the one-image solve compiled with XLA-CPU's default and older emitters
 (results/batch_emitters.json), which chose `_BATCH_PROGRAMS` in `ps/_l2.py`; `--copy` times
 moving an unaligned numpy stack to the device (results/batch_copy.json).
-The 64-capture run is a fresh process (`--peak-rss N CHUNK`) whose peak resident memory
-(`ru_maxrss`) is recorded, input stack included. Each row also records the minor page faults
+The 64-capture runs are fresh processes (`--peak-rss N CHUNK [--dropped]`, CHUNK `None` for
+the default) whose peak resident memory (`ru_maxrss`) is recorded, input stack included:
+clean captures in chunks of 8, and captures that drop samples in the default chunks and in
+chunks of 8. Each row also records the minor page faults
 of one more call (`page_faults`): first writes to pages the allocator just took from the
 kernel, which fresh `(N, ...)` outputs pay on every batch.
 """
@@ -134,14 +136,28 @@ def copies(repeats=5):
     print(json.dumps(res["median_ms"], indent=1))
 
 
-def peak_rss(n, chunk):
-    """Solve `n` captures in chunks of `chunk` in this process; print the peak RSS in GB."""
+def peak_rss(n, chunk, dropped=False):
+    """Solve `n` captures in chunks of `chunk` (None: the default) in this process, with a
+    shadow threshold at the 5th percentile of the samples if `dropped` (every capture then
+    takes the weighted solve); print the peak RSS in GB."""
     caps, lights, mask = captures(n)
-    res = jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=chunk)
+    options = ({"shadow_threshold": float(np.percentile(caps[0][:, mask], 5))} if dropped
+               else {})
+    res = jaxps.photometric_stereo_batch(caps, lights, mask=mask, chunk=chunk, **options)
     jax.block_until_ready(res)
     ok = float(np.mean(np.asarray(res.status) == 0))
     print(json.dumps({"peak_rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
                       "ok_fraction": ok}))
+
+
+def peak_rss_run(n, chunk, dropped=False):
+    """`peak_rss` in a fresh process: `{"captures", "chunk", "dropped", "peak_rss_gb",
+    "ok_fraction"}` (`chunk` None: the default)."""
+    out = subprocess.run([sys.executable, __file__, "--peak-rss", str(n), str(chunk)]
+                         + (["--dropped"] if dropped else []) + (["--quick"] if QUICK else []),
+                         capture_output=True, text=True, check=True)
+    return {"captures": n, "chunk": chunk, "dropped": dropped,
+            **json.loads(out.stdout.strip().splitlines()[-1])}
 
 
 def main():
@@ -235,12 +251,9 @@ def main():
             ("lights_per_capture_over_single_throughput_aligned_dropped",
              "batch_l2_aligned_lights_per_capture_dropped", "single_calls_l2_aligned_dropped")):
         res[key] = res[batch]["captures_per_s"] / res[single]["captures_per_s"]
-    chunk = 8
-    out = subprocess.run([sys.executable, __file__, "--peak-rss", str(N_BIG), str(chunk)]
-                         + (["--quick"] if QUICK else []), capture_output=True, text=True,
-                         check=True)
-    res["batch_peak_memory"] = {"captures": N_BIG, "chunk": chunk,
-                                **json.loads(out.stdout.strip().splitlines()[-1])}
+    res["batch_peak_memory"] = peak_rss_run(N_BIG, 8)
+    # the default chunks and chunks of 8, every capture taking the weighted solve
+    res["batch_peak_memory_dropped"] = [peak_rss_run(N_BIG, c, dropped=True) for c in (None, 8)]
     _, first, run = timed(lambda: jaxps.photometric_stereo(caps[0], lights, mask=mask,
                                                            method="semi_calibrated"), repeats=1)
     res["semi_calibrated_one_capture"] = {"compile_plus_first_s": first, "run_s": run}
@@ -282,7 +295,8 @@ def main():
 if __name__ == "__main__":
     if "--peak-rss" in sys.argv:
         i = sys.argv.index("--peak-rss")
-        peak_rss(int(sys.argv[i + 1]), int(sys.argv[i + 2]))
+        peak_rss(int(sys.argv[i + 1]), None if sys.argv[i + 2] == "None" else int(sys.argv[i + 2]),
+                 dropped="--dropped" in sys.argv)
     elif "--emitters" in sys.argv:
         emitters()
     elif "--copy" in sys.argv:

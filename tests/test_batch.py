@@ -150,11 +150,12 @@ def test_batch_l2_per_capture_lights_equals_single_calls():
         np.testing.assert_array_equal(clean.status[i], single.status)
 
 
-def test_batch_l2_shared_lights_one_image_equals_single_calls():
+def test_batch_l2_shared_lights_one_image_equals_single_calls(monkeypatch):
     """Captures that share their lights are solved as one image (`_l2_one_image`): one
     capture with a NaN sample sends the stack through the weighted solve, whose results equal
     the single calls (the clean ones to float32 rounding), from numpy and device input, in
-    one chunk or in chunks of 2 (copied into the stacked outputs), fresh or into `out`."""
+    one chunk or in chunks of 2 (copied into the stacked outputs; given, or by default where
+    a program may hold only two captures' pixels), fresh or into `out`."""
     from jaxps.ps import _batch
 
     scenes, images = _captures()
@@ -168,6 +169,13 @@ def test_batch_l2_shared_lights_one_image_equals_single_calls():
             "chunks, out": jaxps.photometric_stereo_batch(
                 images, lights, mask=mask, chunk=2,
                 out=jaxps.photometric_stereo_batch(images, lights, mask=mask))}
+    monkeypatch.setattr(_batch, "_PIXELS_PER_PROGRAM", 2 * images[0, 0].size)
+    written = []
+    monkeypatch.setattr(_batch, "_write_block",
+                        lambda out, start, res, f=_batch._write_block: written.append(start)
+                        or f(out, start, res))
+    runs["default chunks"] = jaxps.photometric_stereo_batch(images, lights, mask=mask)
+    assert written == [0, 2]
     for run, batch in runs.items():
         for i, single in enumerate(singles):
             for name in ("normals", "albedo", "residual"):

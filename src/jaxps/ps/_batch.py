@@ -35,6 +35,12 @@ from ._photometric_stereo import (
 __all__ = ["photometric_stereo_batch"]
 
 _CACHE: dict = {}
+# Pixels of the L2 batch solved in one program when `chunk` is not given: 16 captures of
+# 1 MP. One program holds its chunk's outputs and the weighted solve's temporaries, which
+# grow with it: 64 captures of 1 MP with 5% of the samples dropped peaked at 6.77 GB in one
+# program, 5.56 GB in these default chunks (4 of 16) and 4.98 GB in chunks of 8
+# (`benchmarks/bench_batch.py --peak-rss 64 CHUNK --dropped`, CHUNK 64, None, 8).
+_PIXELS_PER_PROGRAM = 1 << 24
 # Options of the L2 solve that `_l2_one_image` handles; any other goes the general way.
 _L2_OPTIONS = frozenset({"shadow_threshold", "saturation", "dark_threshold"})
 
@@ -132,8 +138,8 @@ def _check_out(out, n, shape, dtype):
 
 def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask, options,
                   chunk, out=None):
-    """The L2 batch on one device: each chunk (by default every capture) solved as one image
-    of N times the pixels. One flag pass over the chunk comes back to the host
+    """The L2 batch on one device: each chunk (by default at most `_PIXELS_PER_PROGRAM`
+    pixels) solved as one image of N times the pixels. One flag pass over the chunk comes back to the host
     (`l2_batch_flags`), then one program writes all five `(N, ...)` outputs, each in one pass
     on all threads (`l2_batch_solve`), into `out`'s buffers when given. Chunks of a longer
     batch are copied into the stacked outputs (`_write_block`). Solved capture by capture,
@@ -149,7 +155,10 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
     # the pseudo-inverse etc. on the host: once, or per capture with a leading N axis
     consts = (host_constants(lights) if shared_lights else
               tuple(np.stack(c) for c in zip(*map(host_constants, lights))))
-    step = n if chunk is None else min(chunk, n)
+    if chunk is None:  # as many programs as `_PIXELS_PER_PROGRAM` needs, of one size
+        programs = -(-n * h * w // _PIXELS_PER_PROGRAM)
+        chunk = -(-n // programs)
+    step = min(chunk, n)
 
     def solve(sl, into=None):
         def part(a, per_capture=True):
@@ -232,8 +241,9 @@ def photometric_stereo_batch(
     - `mask`: `(H, W)` shared or `(N, H, W)`; default all pixels.
     - `sample_mask`: `(N, K, H, W)` bool; default all samples.
     - `method`: one of `jaxps.PS_METHODS` (solver options as in `photometric_stereo`).
-    - `chunk`: solve at most this many captures per call (bounds host/device memory); default
-      all.
+    - `chunk`: solve at most this many captures per call (bounds host/device memory). Default:
+      all, except for `method="l2"` on one device, where chunks of equal size hold at most
+      2^24 pixels each (16 captures of 1 MP).
     - `vmap_size`: captures vectorised together with `jax.vmap` inside one call; the groups run
       one after another (`jax.lax.map(..., batch_size=vmap_size)`). `None` (default) is the
       fastest on a CPU, where under `vmap` the L2 solver's branch on "some sample dropped" (a
