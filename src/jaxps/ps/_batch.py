@@ -259,8 +259,9 @@ def photometric_stereo_batch(
       unusable afterwards). For a stream of batches, pass each result back once it has been
       used: the outputs are then written to memory the process already holds. Fresh `(N, ...)`
       outputs are large enough that the allocator maps new pages for every batch, and the
-      first write to each 4 KiB page costs a page fault (at 8 x 1 MP, a third of the batch's
-      time in `benchmarks/bench_batch.py`). Only for `method="l2"` on one device.
+      first write to each 4 KiB page costs a page fault (at 8 x 1 MP, `out=` took 22-41% less
+      time than fresh outputs in three runs of `benchmarks/bench_batch.py`). Only for
+      `method="l2"` on one device.
 
     With several devices the whole chunk is vmapped and its capture axis padded to a multiple
     of the device count and sharded across them (a 1-D mesh `"captures"`).
