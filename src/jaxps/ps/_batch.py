@@ -139,13 +139,13 @@ def _check_out(out, n, shape, dtype):
 def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask, options,
                   chunk, out=None):
     """The L2 batch on one device: each chunk (by default at most `_PIXELS_PER_PROGRAM`
-    pixels) solved as one image of N times the pixels. One flag pass over the chunk comes back to the host
-    (`l2_batch_flags`), then one program writes all five `(N, ...)` outputs, each in one pass
-    on all threads (`l2_batch_solve`), into `out`'s buffers when given. Chunks of a longer
-    batch are copied into the stacked outputs (`_write_block`). Solved capture by capture,
-    a clean capture's program wrote each output through a `dynamic-update-slice` that
-    XLA-CPU ran on one thread, and any other capture's was copied in after its solve
-    (docs/speed.md, "Many captures")."""
+    pixels) solved as one image of N times the pixels. One flag pass over the chunk comes
+    back to the host (`l2_batch_flags`), then one program writes all five `(N, ...)` outputs,
+    each in one pass on all threads (`l2_batch_solve`), into `out`'s buffers when given.
+    Chunks of a longer batch are copied into the stacked outputs (`_write_block`). Solved
+    capture by capture, a clean capture's program wrote each output through a
+    `dynamic-update-slice` that XLA-CPU ran on one thread, and any other capture's was copied
+    in after its solve (docs/speed.md, "Many captures")."""
     n, h, w = images.shape[0], images.shape[2], images.shape[3]
     dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
     solve_dtype = np.float32 if dtype == np.float16 else dtype
@@ -159,22 +159,26 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
         programs = -(-n * h * w // _PIXELS_PER_PROGRAM)
         chunk = -(-n // programs)
     step = min(chunk, n)
+    # XLA-CPU reads a 64-byte-aligned host array in place; anything else `device_put` copies,
+    # on one thread: align such stacks on every core first (`aligned`). Other devices copy.
+    threads = cpu_cores() if jax.default_backend() == "cpu" else 0
+
+    def to_device(a):
+        return jax.device_put(aligned(a, threads=threads) if threads else a)
 
     def solve(sl, into=None):
         def part(a, per_capture=True):
             return a if not per_capture or sl.stop - sl.start == n else a[sl]
 
         x = part(images)
-        # in place when aligned; else copied on every core (`aligned`)
-        x = x if isinstance(x, jax.Array) else jax.device_put(aligned(x, threads=cpu_cores()))
+        x = x if isinstance(x, jax.Array) else to_device(x)
         if shared_mask:  # one plane per capture: see `l2_batch_solve`
             msk = aligned_empty((sl.stop - sl.start, h, w), bool)
             msk[...] = mask
         else:
             msk = part(mask)
-        msk = jax.device_put(msk)
-        smask = None if sample_mask is None else jax.device_put(
-            aligned(part(sample_mask), threads=cpu_cores()))
+        msk = to_device(msk)
+        smask = None if sample_mask is None else to_device(part(sample_mask))
         lt = jax.device_put(part(lights, not shared_lights).astype(solve_dtype))
         cst = jax.device_put(tuple(part(c, not shared_lights) for c in consts))
         flags = np.asarray(l2_batch_flags(x, msk, smask, thresholds, cst))
