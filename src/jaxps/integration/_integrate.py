@@ -308,11 +308,22 @@ def _orthographic_steps(normals, mask):
     return jnp.where(ok, -nx * inv * slope, 0), jnp.where(ok, ny * inv * slope, 0), ok
 
 
+def _stacked_steps(normals, mask):
+    """`_orthographic_steps` with the two step planes written as one `(2, H, W)` array behind
+    an `optimization_barrier`. Left free, XLA-CPU wrote $1/|n|$ and the slope to memory for
+    the two planes' passes to share; this way one pass computes both steps from the normals:
+    the spectrum programs of FC and DCT took 20-25% less time, results bit-identical
+    (`benchmarks/bench_stacked_steps.py`)."""
+    dzdc, dzdr, ok = _orthographic_steps(normals, mask)
+    steps = jax.lax.optimization_barrier(jnp.stack([dzdc, dzdr]))
+    return steps[0], steps[1], ok
+
+
 @jax.jit
 def _fc_spectrum_from_normals(normals, mask, pixel_size):
     """`integrate(method="fc")` without intrinsics, up to the height's spectrum (`_fc_height`
     finishes it); and whether any normal was valid."""
-    dzdc, dzdr, ok = _orthographic_steps(normals, mask)
+    dzdc, dzdr, ok = _stacked_steps(normals, mask)
     return _fc_spectrum(dzdc, dzdr, pixel_size), jnp.any(ok)
 
 
@@ -321,7 +332,7 @@ def _dct_spectrum_from_normals(normals, mask, cam):
     """`integrate(method="dct")` in two programs: this one, up to the solve's half spectrum
     (and the valid mask), then `_dct_height`."""
     if cam is None:
-        gc, gr, valid = _orthographic_steps(normals, mask)
+        gc, gr, valid = _stacked_steps(normals, mask)
     else:
         n, valid = _unit_normals(normals, mask)
         gc, gr = _height_steps(n, valid, cam)
