@@ -28,7 +28,6 @@ import platform
 import resource
 import subprocess
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -46,10 +45,10 @@ N_BIG = 8 if QUICK else 64
 
 
 try:
-    from benchmarks._common import environment, page_faults, timed
+    from benchmarks._common import environment, interleaved, page_faults, timed
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, page_faults, timed
+    from benchmarks._common import environment, interleaved, page_faults, timed
 
 
 def captures(n, seed=0, k=K):
@@ -93,14 +92,7 @@ def emitters(rounds=8):
             for name, program in programs.items():
                 fns[f"k{k}_{branch}_{name}"] = functools.partial(
                     program, *args, branch=branch, dtype=np.dtype(np.float32))
-    times = {k: [] for k in fns}
-    for f in fns.values():
-        jax.block_until_ready(f())
-    for _ in range(rounds):
-        for k, f in fns.items():
-            t = time.perf_counter()
-            jax.block_until_ready(f())
-            times[k].append(time.perf_counter() - t)
+    _, times = interleaved(fns, rounds)
     res = {"env": environment(), "shape": [N, "K", H, W], "rounds": rounds,
            "median_ms": {k: 1e3 * float(np.median(v)) for k, v in times.items()}}
     OUT.mkdir(exist_ok=True)
@@ -122,12 +114,7 @@ def copies(repeats=5):
            "aligned_1_thread": lambda: jax.device_put(aligned(caps)),
            f"aligned_{cpu_cores()}_threads": lambda: jax.device_put(
                aligned(caps, threads=cpu_cores()))}
-    times = {k: [] for k in fns}
-    for _ in range(repeats):
-        for k, f in fns.items():
-            t = time.perf_counter()
-            jax.block_until_ready(f())
-            times[k].append(time.perf_counter() - t)
+    _, times = interleaved(fns, repeats)
     res = {"env": environment(), "shape": list(caps.shape), "address_mod_64":
            caps.ctypes.data % 64, "median_ms": {k: 1e3 * float(np.median(v))
                                                 for k, v in times.items()}}

@@ -312,8 +312,8 @@ def _stacked_steps(normals, mask):
     """`_orthographic_steps` with the two step planes written as one `(2, H, W)` array behind
     an `optimization_barrier`. Left free, XLA-CPU wrote $1/|n|$ and the slope to memory for
     the two planes' passes to share; this way one pass computes both steps from the normals:
-    FC and DCT integration took 26-34% less time at 1 MP, heights bit-identical (two runs of
-    `benchmarks/bench_stacked_steps.py`)."""
+    at 1 MP the median FC took 4-26% less time and DCT 15-34% less, with the same heights
+    (five runs of `benchmarks/bench_stacked_steps.py`)."""
     dzdc, dzdr, ok = _orthographic_steps(normals, mask)
     steps = jax.lax.optimization_barrier(jnp.stack([dzdc, dzdr]))
     return steps[0], steps[1], ok
