@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import pathlib
@@ -11,6 +12,22 @@ import time
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
+
+
+def arguments(doc: str | None, quick: bool = False, configure=None,
+              argv=None) -> argparse.Namespace:
+    """Parse a benchmark script's command line, so that `--help` prints its docstring and an
+    unknown option stops it, before any work or any write to `results/`.
+
+    `quick`: the script takes `--quick` (a small smoke run); `configure(parser)` adds the
+    script's own options."""
+    parser = argparse.ArgumentParser(description=doc,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    if quick:
+        parser.add_argument("--quick", action="store_true", help="small inputs, few repeats")
+    if configure is not None:
+        configure(parser)
+    return parser.parse_args(argv)
 
 
 def data_dir() -> pathlib.Path:

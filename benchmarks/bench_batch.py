@@ -45,10 +45,10 @@ N_BIG = 8 if QUICK else 64
 
 
 try:
-    from benchmarks._common import environment, interleaved, page_faults, timed
+    from benchmarks._common import arguments, environment, interleaved, page_faults, timed
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, interleaved, page_faults, timed
+    from benchmarks._common import arguments, environment, interleaved, page_faults, timed
 
 
 def captures(n, seed=0, k=K):
@@ -279,14 +279,27 @@ def main():
     print(json.dumps(res, indent=1))
 
 
+def _options(parser):
+    parser.add_argument("--out", help="JSON path (default results/batch.json; the chart beside it)")
+    parser.add_argument("--peak-rss", nargs=2, metavar=("N", "CHUNK"),
+                        help="one fresh-process memory run: N captures in chunks of CHUNK "
+                             "(None: the default)")
+    parser.add_argument("--dropped", action="store_true",
+                        help="with --peak-rss: every capture drops samples")
+    parser.add_argument("--emitters", action="store_true",
+                        help="time the solve with default and older emitters instead")
+    parser.add_argument("--copy", action="store_true",
+                        help="time moving an unaligned stack to the device instead")
+
+
 if __name__ == "__main__":
-    if "--peak-rss" in sys.argv:
-        i = sys.argv.index("--peak-rss")
-        peak_rss(int(sys.argv[i + 1]), None if sys.argv[i + 2] == "None" else int(sys.argv[i + 2]),
-                 dropped="--dropped" in sys.argv)
-    elif "--emitters" in sys.argv:
+    args = arguments(__doc__, quick=True, configure=_options)
+    if args.peak_rss:
+        n, chunk = args.peak_rss
+        peak_rss(int(n), None if chunk == "None" else int(chunk), dropped=args.dropped)
+    elif args.emitters:
         emitters()
-    elif "--copy" in sys.argv:
+    elif args.copy:
         copies()
     else:
         main()

@@ -42,10 +42,10 @@ import tempfile
 import time
 
 try:
-    from benchmarks._common import data_dir, environment, write_json
+    from benchmarks._common import arguments, data_dir, environment, write_json
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import data_dir, environment, write_json
+    from benchmarks._common import arguments, data_dir, environment, write_json
 
 QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 # (name, rows, columns): a 1.3 MP scanner frame and a Yale B frame.
@@ -262,7 +262,9 @@ def _chart(res, path):
 
 
 if __name__ == "__main__":
-    if "--buckets-child" in sys.argv:
-        _buckets_child(int(sys.argv[sys.argv.index("--buckets-child") + 1]))
+    args = arguments(__doc__, quick=True, configure=lambda p: p.add_argument(
+        "--buckets-child", type=int, metavar="MULTIPLE", help="internal: one bucketing run"))
+    if args.buckets_child is not None:
+        _buckets_child(args.buckets_child)
     else:
         main()

@@ -30,10 +30,10 @@ import tempfile
 import numpy as np
 
 try:
-    from benchmarks._common import environment, interleaved, write_json
+    from benchmarks._common import arguments, environment, interleaved, write_json
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, interleaved, write_json
+    from benchmarks._common import arguments, environment, interleaved, write_json
 
 QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 ROUNDS = 3 if QUICK else 9
@@ -102,4 +102,5 @@ def main():
 
 
 if __name__ == "__main__":
+    arguments(__doc__, quick=True)
     main()

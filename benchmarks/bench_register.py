@@ -31,7 +31,7 @@ import numpy as np
 import jaxps
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from benchmarks._common import data_dir, environment, write_json  # noqa: E402
+from benchmarks._common import arguments, data_dir, environment, write_json  # noqa: E402
 
 SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
 
@@ -168,4 +168,5 @@ def main():
 
 
 if __name__ == "__main__":
+    arguments(__doc__)
     main()

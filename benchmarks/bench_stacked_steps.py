@@ -28,13 +28,13 @@ import jaxps
 from jaxps.integration import _integrate as integ
 
 try:
-    from benchmarks._common import environment, interleaved, write_json
+    from benchmarks._common import arguments, environment, interleaved, write_json
     from benchmarks.bench_core import _pq, scipy_dct_poisson, scipy_fc
 except ImportError:  # run as a script
     import pathlib
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, interleaved, write_json
+    from benchmarks._common import arguments, environment, interleaved, write_json
     from benchmarks.bench_core import _pq, scipy_dct_poisson, scipy_fc
 
 H, W, ROUNDS = 1024, 1280, 25
@@ -111,4 +111,5 @@ def main():
 
 
 if __name__ == "__main__":
+    arguments(__doc__)
     main()

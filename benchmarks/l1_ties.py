@@ -25,13 +25,13 @@ import jaxps
 from jaxps.stability import render_corrupted, ring_lights
 
 try:
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import arguments, environment, write_json
 except ImportError:  # run as a script
     import pathlib
     import sys
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import arguments, environment, write_json
 
 LIGHT_SETS = {
     "ring: axis + 4 at 45 deg (bench_robust.py)": np.asarray(ring_lights(5, 45.0)),
@@ -99,4 +99,5 @@ def main():
 
 
 if __name__ == "__main__":
+    arguments(__doc__)
     main()

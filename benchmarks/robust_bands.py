@@ -27,12 +27,12 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 try:
-    from benchmarks._common import environment, interleaved, write_json
+    from benchmarks._common import arguments, environment, interleaved, write_json
 except ImportError:  # run as a script
     import pathlib
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, interleaved, write_json
+    from benchmarks._common import arguments, environment, interleaved, write_json
 
 
 def main(methods=("l2", "l1", "barsky", "irls", "sbl"), rounds=7):
@@ -118,4 +118,5 @@ def batches(rounds):
 
 
 if __name__ == "__main__":
+    arguments(__doc__)
     main()

@@ -28,10 +28,10 @@ from jaxps.core._status import Status
 from jaxps.ps import _l2
 
 try:
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import arguments, environment, write_json
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import arguments, environment, write_json
 
 
 def pixel_weighted_closed_form(x, usable, inside, lights, thresholds):
@@ -98,4 +98,5 @@ def main(repeats=15):
 
 
 if __name__ == "__main__":
+    arguments(__doc__)
     main()

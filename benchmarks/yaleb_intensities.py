@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import os
 import pathlib
-import sys
 
 import cv2
 import jax.numpy as jnp
@@ -147,4 +146,9 @@ def main(out=ROOT / "benchmarks" / "results" / "yaleb_intensities.json"):
 
 
 if __name__ == "__main__":
-    main(*sys.argv[1:])
+    import argparse
+
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("out", nargs="?", default=ROOT / "benchmarks" / "results"
+                        / "yaleb_intensities.json", help="JSON path")
+    main(parser.parse_args().out)

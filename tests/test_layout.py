@@ -166,3 +166,48 @@ def test_subpackage_says_what_it_takes_and_gives_and_is_reexported(unit):
         assert not name.startswith("_") and obj is not None
         if unit in TOP_LEVEL:
             assert getattr(jaxps, name, None) is obj, f"jaxps.{name} is not jaxps.{unit}.{name}"
+
+
+def _main_block(tree):
+    for node in tree.body:
+        if (isinstance(node, ast.If) and isinstance(node.test, ast.Compare)
+                and ast.unparse(node.test) == "__name__ == '__main__'"):
+            return node.body
+    return None
+
+
+def _first_work(body):
+    """The first statement of `body` (and its source) that parses the command line or calls
+    anything else, leaving out the building of the parser and reads of the environment."""
+    for stmt in body:
+        text = ast.unparse(stmt)
+        parses = "parse_args(" in text or "arguments(" in text
+        if parses or (any(isinstance(n, ast.Call) for n in ast.walk(stmt))
+                      and not any(k in text for k in ("ArgumentParser(", ".add_argument(",
+                                                      "os.environ"))):
+            return stmt, text
+    return None, ""
+
+
+def test_benchmark_scripts_parse_their_arguments_before_any_work():
+    """`python benchmarks/X.py --help` prints usage, and an unknown option stops the script,
+    before it runs (one script once ran a full benchmark on `--help` and overwrote its
+    results). Checked on the source: the `__main__` block, or the module function it calls
+    first, parses the command line (argparse, or `_common.arguments`) before any other call."""
+    scripts = sorted((ROOT / "benchmarks").glob("*.py"))
+    assert len(scripts) > 20
+    late = []
+    for path in scripts:
+        tree = ast.parse(path.read_text())
+        body = _main_block(tree)
+        if body is None:
+            continue
+        functions = {f.name: f for f in tree.body if isinstance(f, ast.FunctionDef)}
+        stmt, text = _first_work(body)
+        while ("parse_args(" not in text and isinstance(stmt, ast.Expr)
+               and isinstance(stmt.value, ast.Call)
+               and ast.unparse(stmt.value.func) in functions):  # e.g. main(): look inside
+            stmt, text = _first_work(functions.pop(ast.unparse(stmt.value.func)).body)
+        if not ("parse_args(" in text or "arguments(" in text):
+            late.append(f"{path.name}: first call {text[:60]!r}")
+    assert not late, late
