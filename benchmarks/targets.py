@@ -1,0 +1,186 @@
+"""Issue 18's speed targets against the benchmarks' latest results: one row each, met or not.
+
+Reads the JSON files that the benchmark scripts wrote to `benchmarks/results/` and runs
+nothing itself, so rerun the benchmarks first. Each row gives its figure from every run
+passed (several `bench_core.py` runs with `--core`, and so on) and says in how many of
+them the target was met. It prints a Markdown table and writes `results/targets.json`.
+
+    PYTHONPATH=src python benchmarks/targets.py \\
+        --core core_run1.json core_run2.json core.json --batch batch.json
+
+Files are looked up in `benchmarks/results/` unless a path to an existing file is given.
+Where the figures come from:
+
+| rows | file | command |
+|---|---|---|
+| L2, FC, DCT, PS + FC, time per pixel, 16 MP memory | `core.json` | `bench_core.py` |
+| batch of 8, 64 captures' memory | `batch.json` | `bench_batch.py` |
+| command line | `cli.json` | `bench_cli.py` |
+| MLP relighting | `brdf.json` | `bench_brdf.py --part speed` |
+| bilateral integration | `integration.json` | `bench_integration.py` |
+| robust L1 (`irls`) | `robust.json` | `bench_robust.py` |
+"""
+
+from __future__ import annotations
+
+import json
+import pathlib
+import sys
+
+try:
+    from benchmarks._common import RESULTS, arguments, write_json
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import RESULTS, arguments, write_json
+
+BATCH_ROWS = {  # issue 18: "throughput at least 1.0x that of 8 single calls"
+    "numpy stacks": "batch_over_single_throughput",
+    "aligned host stacks": "batch_over_single_throughput_aligned",
+    "stacks on the device": "batch_over_single_throughput_on_device",
+    "aligned, `out=` stream": "reusing_out_over_single_throughput_aligned",
+    "dropping samples": "batch_over_single_throughput_aligned_dropped",
+    "dropping samples, `out=`": "reusing_out_over_single_throughput_aligned_dropped",
+    "K=12": "batch_over_single_throughput_aligned_k12",
+}
+
+
+def load(name: str) -> dict:
+    path = pathlib.Path(name)
+    return json.loads((path if path.is_file() else RESULTS / name).read_text())
+
+
+def core_ratio(run: dict, work: str, k: int | None = None) -> float:
+    """The `ratio` (jaxps over its baseline, same run) of a `bench_core.py` row."""
+    (row,) = [r for r in run["rows"] if r["work"] == work and r["impl"].startswith("jaxps")
+              and (k is None or r.get("K") == k)]
+    return row["ratio"]
+
+
+def spread(run: dict, key: str) -> float:
+    """Largest over smallest time per pixel across `bench_core.py`'s image sizes."""
+    values = [s[key] for s in run["scaling"]]
+    return max(values) / min(values)
+
+
+def target(name, values, bound, at_most=True, unit="x", source="", note=""):
+    """One row: `values` (one per run) held to `bound`."""
+    met = [v <= bound if at_most else v >= bound for v in values]
+    return {"target": name, "bound": f"{'<=' if at_most else '>='} {bound:g}{unit}",
+            "values": [round(v, 3) for v in values], "unit": unit,
+            "met_runs": sum(met), "runs": len(values), "source": source, "note": note}
+
+
+def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: dict | None,
+         integration: dict | None, robust: dict | None) -> list[dict]:
+    out = []
+    if core:
+        src = "bench_core.py"
+        out += [
+            target("L2 PS, K=5, 1 MP, over numpy pinv-matmul + normalise",
+                   [core_ratio(r, "ps_l2", 5) for r in core], 0.6, source=src),
+            target("L2 PS, K=12, over numpy", [core_ratio(r, "ps_l2", 12) for r in core], 1.0,
+                   source=src),
+            target("L2 PS, K=12, ~5% of samples dropped, over numpy",
+                   [core_ratio(r, "ps_l2_dropped", 12) for r in core], 1.5, source=src),
+            target("Frankot-Chellappa from the normals, over scipy.fft on the gradients",
+                   [core_ratio(r, "fc") for r in core], 1.0, source=src),
+            target("DCT Poisson from the normals, over scipy.fft's from the gradients",
+                   [core_ratio(r, "dct") for r in core], 1.0, source=src,
+                   note="jaxps also computes the gradients and the masked mean"),
+            target("DCT Poisson solve from the same gradients as scipy's",
+                   [core_ratio(r, "dct_solve") for r in core], 1.0, source=src),
+            target("L2 PS + FC, over numpy PS + scipy FC",
+                   [core_ratio(r, "ps_l2+fc", 5) for r in core], 1.0, source=src),
+            target("time per pixel 0.26-16 MP, L2 PS: largest over smallest",
+                   [spread(r, "ps_l2_ns_per_px") for r in core], 1.3, source=src),
+            target("time per pixel 0.26-16 MP, FC: largest over smallest",
+                   [spread(r, "fc_ns_per_px") for r in core], 1.3, source=src),
+            target("16 MP five-frame capture, peak RSS",
+                   [r["peak_memory"]["peak_rss_gb"] for r in core], 6.0, unit=" GB",
+                   source=src),
+        ]
+    for label, key in BATCH_ROWS.items() if batch else ():
+        out.append(target(f"batch of 8 x 1 MP over 8 single calls, {label}",
+                          [b[key] for b in batch], 1.0, at_most=False, source="bench_batch.py"))
+    if batch:
+        out.append(target("64 captures of 1 MP, peak RSS (clean, chunks of 8; dropping "
+                          "samples, default chunks)",
+                          [m for b in batch for m in (
+                              b["batch_peak_memory"]["peak_rss_gb"],
+                              *(d["peak_rss_gb"] for d in b.get("batch_peak_memory_dropped", [])
+                                if d["chunk"] is None))],
+                          8.0, unit=" GB", source="bench_batch.py"))
+    if cli:
+        rec = [c["reconstruct"] for c in cli]
+        out += [
+            target("`jaxps --help`", [c["start_up_s"]["jaxps --help"] for c in cli], 0.5,
+                   unit=" s", source="bench_cli.py"),
+            target("`jaxps reconstruct`, five 1 MP 16-bit PNGs, first run (empty cache)",
+                   [r["1280x1024"]["first (empty cache)"]["wall_s"] for r in rec], 6.0,
+                   unit=" s", source="bench_cli.py"),
+            target("the same, second run", [r["1280x1024"]["second (warm cache)"]["wall_s"]
+                                            for r in rec], 2.0, unit=" s",
+                   source="bench_cli.py"),
+            target("`jaxps reconstruct`, five 192x168 frames, second run",
+                   [r["192x168"]["second (warm cache)"]["wall_s"] for r in rec], 1.5,
+                   unit=" s", source="bench_cli.py"),
+        ]
+    if brdf:
+        relight = brdf["speed"]["relight"]
+        out.append(target("MLP relighting of 700x850 (median; `mlp`, `mlp_ratio`)",
+                          [relight["relight_mlp"]["ms_median"],
+                           relight["relight_mlp_ratio"]["ms_median"]], 5.0, unit=" ms",
+                          source="bench_brdf.py --part speed"))
+    if integration:
+        objects = integration["objects"]
+        out.append(target("bilateral integration per DiLiGenT object ("
+                          + ", ".join(objects) + ")",
+                          [objects[o]["bilateral"]["run_s"] for o in objects], 0.3, unit=" s",
+                          source="bench_integration.py"))
+    if robust:
+        irls = robust["ours"]["irls"]
+        same = robust["baseline"]["L1"]
+        out.append(target("robust `irls` (L1), 1 MP, K=5", [irls["run_s"]], 0.15, unit=" s",
+                          source="bench_robust.py",
+                          note=f"median error {same['ours_on_same_pixels']['irls']['median_deg']:.2f}"
+                               f" deg against RobustPhotometricStereo's L1 "
+                               f"{same['error_subset']['median_deg']:.2f} on the same pixels"))
+    return out
+
+
+def markdown(table: list[dict]) -> str:
+    lines = ["| target | bound | figure (each run) | met |", "|---|---|---|---|"]
+    for r in table:
+        figures = ", ".join(f"{v:g}" for v in r["values"]) + r["unit"].replace("x", "x")
+        note = f" ({r['note']})" if r["note"] else ""
+        met = ("yes" if r["met_runs"] == r["runs"] else
+               "no" if r["met_runs"] == 0 else f"{r['met_runs']} of {r['runs']}")
+        lines.append(f"| {r['target']}{note} | {r['bound']} | {figures} | {met} |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> dict:
+    def options(p):
+        p.add_argument("--core", nargs="+", default=["core.json"], metavar="JSON")
+        p.add_argument("--batch", nargs="+", default=["batch.json"], metavar="JSON")
+        p.add_argument("--cli", nargs="+", default=["cli.json"], metavar="JSON")
+        p.add_argument("--out", default="targets", help="results/OUT.json")
+
+    args = arguments(__doc__, configure=options, argv=argv)
+    optional = {name: load(f"{name}.json") if (RESULTS / f"{name}.json").is_file() else None
+                for name in ("brdf", "integration", "robust")}
+    table = rows([load(c) for c in args.core], [load(b) for b in args.batch],
+                 [load(c) for c in args.cli], **optional)
+    payload = {"command": "PYTHONPATH=src python benchmarks/targets.py "
+                          + " ".join(sys.argv[1:] if argv is None else argv),
+               "inputs": {"core": args.core, "batch": args.batch, "cli": args.cli,
+                          **{k: f"{k}.json" for k, v in optional.items() if v is not None}},
+               "targets": table}
+    path = write_json(args.out, payload)
+    print(markdown(table))
+    print(f"wrote {path}")
+    return payload
+
+
+if __name__ == "__main__":
+    main()
