@@ -133,10 +133,10 @@ def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: dict | None
                           source="bench_brdf.py --part speed"))
     if integration:
         objects = integration["objects"]
-        out.append(target("bilateral integration per DiLiGenT object ("
+        out.append(target("bilateral integration per DiLiGenT object, with intrinsics ("
                           + ", ".join(objects) + ")",
-                          [objects[o]["bilateral"]["run_s"] for o in objects], 0.3, unit=" s",
-                          source="bench_integration.py"))
+                          [objects[o]["bilateral persp"]["run_s"] for o in objects], 0.3,
+                          unit=" s", source="bench_integration.py"))
     if robust:
         irls = robust["ours"]["irls"]
         same = robust["baseline"]["L1"]
@@ -151,7 +151,7 @@ def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: dict | None
 def markdown(table: list[dict]) -> str:
     lines = ["| target | bound | figure (each run) | met |", "|---|---|---|---|"]
     for r in table:
-        figures = ", ".join(f"{v:g}" for v in r["values"]) + r["unit"].replace("x", "x")
+        figures = ", ".join(f"{v:.3f}" for v in r["values"]) + r["unit"]
         note = f" ({r['note']})" if r["note"] else ""
         met = ("yes" if r["met_runs"] == r["runs"] else
                "no" if r["met_runs"] == 0 else f"{r['met_runs']} of {r['runs']}")

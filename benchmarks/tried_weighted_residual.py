@@ -1,5 +1,5 @@
 """A negative result, kept so that its figures can be rerun: the weighted L2 residual in closed
-form (docs/speed.md, "Not there yet", dropped samples).
+form (docs/speed_history.md, "Not there yet", dropped samples).
 
 The weighted solve (`ps/_l2.py`, `_pixel_weighted`) recomputes each used sample's misfit
 $g_k - l_k \\cdot b$ once $b$ is known. The closed form $\\sum_k w_k g_k^2 - b^T r$ (with

@@ -49,3 +49,36 @@ def test_draw_writes_an_overview_and_one_chart_per_task(tmp_path):
     assert all(p.stat().st_size > 5000 for p in written)
     assert runner.task_of("robust PS 1280x1024") == "robust"
     assert runner.task_of("relight yaleB01 cross <=30 deg") == "relight"
+
+
+def _core_run(k5_ratio, ps_ns=(8.0, 8.0), peak_gb=3.5):
+    """A `bench_core.py` result with the rows `benchmarks/targets.py` reads."""
+    rows = [{"work": w, "impl": "jaxps", "K": k, "ratio": r} for w, k, r in [
+        ("ps_l2", 5, k5_ratio), ("ps_l2", 12, 0.9), ("ps_l2_dropped", 12, 1.4), ("fc", None, 1.1),
+        ("dct", None, 0.9), ("dct_solve", None, 0.5), ("ps_l2+fc", 5, 0.8)]]
+    rows.append({"work": "ps_l2", "impl": "numpy pinv-matmul+normalise", "K": 5, "run_s": 0.01})
+    return {"rows": rows, "peak_memory": {"peak_rss_gb": peak_gb},
+            "scaling": [{"ps_l2_ns_per_px": v, "fc_ns_per_px": 10.0} for v in ps_ns]}
+
+
+def test_targets_hold_every_run_to_its_bound_in_the_right_direction():
+    targets = pytest.importorskip("benchmarks.targets")
+    batch = {key: value for key, value in zip(targets.BATCH_ROWS.values(),
+                                              [0.9, 1.0, 1.2, 1.1, 0.5, 0.8, 2.0])}
+    batch["batch_peak_memory"] = {"peak_rss_gb": 4.0}
+    table = {r["target"]: r for r in targets.rows(
+        [_core_run(0.55, (8.0, 12.0)), _core_run(0.7)], [batch], [], None, None, None)}
+    k5 = table["L2 PS, K=5, 1 MP, over numpy pinv-matmul + normalise"]
+    assert (k5["values"], k5["met_runs"], k5["runs"], k5["bound"]) == ([0.55, 0.7], 1, 2,
+                                                                       "<= 0.6x")
+    spread = table["time per pixel 0.26-16 MP, L2 PS: largest over smallest"]
+    assert spread["values"] == [1.5, 1.0] and spread["met_runs"] == 1
+    assert table["Frankot-Chellappa from the normals, over scipy.fft on the gradients"][
+        "met_runs"] == 0
+    # batches must reach the bound: 1.0x counts, 0.9x does not
+    numpy_stacks = table["batch of 8 x 1 MP over 8 single calls, numpy stacks"]
+    aligned = table["batch of 8 x 1 MP over 8 single calls, aligned host stacks"]
+    assert (numpy_stacks["met_runs"], aligned["met_runs"], aligned["bound"]) == (0, 1, ">= 1x")
+    assert "| no |" in targets.markdown([numpy_stacks]) and "| yes |" in targets.markdown(
+        [aligned])
+    assert "| 1 of 2 |" in targets.markdown([k5])
