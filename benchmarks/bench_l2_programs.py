@@ -83,7 +83,7 @@ def _rows(k, surface, repeats):
     def needs(options=None):
         fn = jax.jit(_l2.l2_needs_weights.__wrapped__,
                      **({} if options is None else {"compiler_options": options}))
-        return lambda: fn(images, mask, None, clean, shared)
+        return lambda: fn(images, mask, None, clean)
 
     def flat(weighted):
         fn = jax.jit(_flat_then_reshaped(weighted))

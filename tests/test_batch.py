@@ -188,9 +188,7 @@ def test_batch_l2_shared_lights_one_image_equals_single_calls(monkeypatch):
     x = jax.device_put(images)
     full = np.broadcast_to(mask, (3, *mask.shape))
     thresholds = tuple(np.float32(t) for t in _batch._sample_thresholds())
-    consts = _batch.host_constants(np.asarray(lights, np.float64))
-    np.testing.assert_array_equal(_batch.l2_batch_flags(x, full, None, thresholds, consts),
-                                  [0, 3, 0])
+    np.testing.assert_array_equal(_batch.l2_batch_flags(x, full, None, thresholds), [0, 3, 0])
 
 
 def test_batch_l2_reuses_out():

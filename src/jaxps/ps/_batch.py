@@ -181,7 +181,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
         smask = None if sample_mask is None else to_device(part(sample_mask))
         lt = jax.device_put(part(lights, not shared_lights).astype(solve_dtype))
         cst = jax.device_put(tuple(part(c, not shared_lights) for c in consts))
-        flags = np.asarray(l2_batch_flags(x, msk, smask, thresholds, cst))
+        flags = np.asarray(l2_batch_flags(x, msk, smask, thresholds))
         return l2_batch_solve(x, lt, msk, smask, thresholds, cst, dtype=dtype, out=into,
                               branch=branch_of(int(np.bitwise_or.reduce(flags))))
 

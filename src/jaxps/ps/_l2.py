@@ -143,26 +143,40 @@ def _finish(solve, n_used, cases, inside, backfacing_from_b=False):
     return normal_out, albedo, status, n_used, jnp.where(ok, residual, 0)
 
 
-def _pixel_all_used(x, usable, inside, shared, thresholds):
-    """Solve one pixel assuming all K samples are usable, with the shared `(3, K)` $L^+$.
+def _pixel_flags(x, usable, inside, thresholds):
+    """The host's flags for one pixel (`x` and `usable` as in `_pixel_all_used`): an int32,
+    0 outside the mask, with bit 0 set when `_pixel_all_used`'s assumption fails (a sample
+    non-finite, saturated, shadowed or not usable), so that the pixel must be solved by
+    `_pixel_weighted`, and bit 1 set when a sample is not finite (that solve must then zero
+    it: `_samples`).
 
-    `x` is a list of K samples, each a list of C channel scalars; `usable` K bools; `shared`
-    = (lights, pinv, null, gram, full_rank) computed once per image. The squared misfit is
-    $\\|N i\\|^2$ with the rows of `null` spanning the complement of the light columns: exact,
-    and cheaper than recomputing $i - L b$. Returns the outputs of `_finish` and an int32 of
-    flags, 0 outside the mask: bit 0 set when the assumption fails (a sample non-finite,
-    saturated, shadowed or not usable), in which case the pixel must be solved by
-    `_pixel_weighted`; bit 1 set when a sample is not finite.
+    A kernel of its own rather than an output of the solve: the flag programs then trace and
+    lower only these tests, not the whole solve that XLA would discard.
     """
-    dark, saturation, shadow = thresholds
-    lights, pinv, null, gram, full_rank = shared
-    ks = range(len(x))
+    _, saturation, shadow = thresholds
     g = [_grey(xk) for xk in x]
     finite = jnp.isfinite(sum(g))  # one test: a NaN or Inf in any sample makes the sum so
     clean = (finite
              & functools.reduce(jnp.logical_and, usable)
              & ~_any([v >= saturation for xk in x for v in xk])
              & ~_any([v < shadow for v in g]))
+    flags = (~clean).astype(jnp.int32) | (~finite).astype(jnp.int32) << 1
+    return jnp.where(inside, flags, 0)
+
+
+def _pixel_all_used(x, usable, inside, shared, thresholds):
+    """Solve one pixel assuming all K samples are usable (`_pixel_flags` says where they are
+    not), with the shared `(3, K)` $L^+$.
+
+    `x` is a list of K samples, each a list of C channel scalars; `usable` K bools; `shared`
+    = (lights, pinv, null, gram, full_rank) computed once per image. The squared misfit is
+    $\\|N i\\|^2$ with the rows of `null` spanning the complement of the light columns: exact,
+    and cheaper than recomputing $i - L b$. Returns the outputs of `_finish`.
+    """
+    dark = thresholds[0]
+    lights, pinv, null, gram, full_rank = shared
+    ks = range(len(x))
+    g = [_grey(xk) for xk in x]
 
     def solve():  # called per output by `_finish`: each output's loop solves b again
         gv = [_grey(xk) for xk in x]
@@ -179,11 +193,7 @@ def _pixel_all_used(x, usable, inside, shared, thresholds):
 
     brightest = functools.reduce(jnp.maximum, g)
     cases = [(brightest <= dark, Status.DARK), (~full_rank, Status.DEGENERATE)]
-    out = _finish(solve, jnp.int32(len(x)), cases, inside)
-    # the host's flags for this pixel: bit 0, solve it by `_pixel_weighted`; bit 1, a sample
-    # is not finite (then that solve must zero it: `_samples`)
-    flags = (~clean).astype(jnp.int32) | (~finite).astype(jnp.int32) << 1
-    return *out, jnp.where(inside, flags, 0)
+    return _finish(solve, jnp.int32(len(x)), cases, inside)
 
 
 def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
@@ -282,10 +292,17 @@ def _lift(kernel, in_axes, flat, batched=False, per_capture=False):
                                   for i, a in enumerate(in_axes)))
 
 
+def _flags(images, mask, sample_mask, thresholds, flat=True, batched=False):
+    """`_pixel_flags` over every pixel (`batched`: `(N, K, ...)` images as in `_planes`)."""
+    axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
+    return _lift(_pixel_flags, (0, axis, 0, None), flat, batched)(
+        *_planes(images, sample_mask, mask, flat, batched), thresholds)
+
+
 def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True, batched=False):
-    """`_pixel_all_used` over every pixel: the outputs, then the "re-solve needed" flags.
-    `batched`: `(N, K, ...)` images as in `_planes`, `shared` for all (`(K, 3)` lights) or
-    per capture (`(N, K, 3)` lights, each constant with a leading N axis)."""
+    """`_pixel_all_used` over every pixel. `batched`: `(N, K, ...)` images as in `_planes`,
+    `shared` for all (`(K, 3)` lights) or per capture (`(N, K, 3)` lights, each constant with
+    a leading N axis)."""
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
     per_capture = batched and shared[0].ndim == 3
     return _lift(_pixel_all_used, (0, axis, 0, None, None), flat, batched, per_capture)(
@@ -355,7 +372,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
                          f"got {branch!r}")
     if lights.ndim == 2 and branch == "all_used":
         out = _stacked(_solve_all_used(images, mask, sample_mask, thresholds, shared,
-                                       flat=False)[:-1])
+                                       flat=False))
     elif lights.ndim == 2 and branch in ("weighted", "weighted_finite"):
         out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds,
                                        flat=False, all_finite=branch == "weighted_finite"))
@@ -365,11 +382,11 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
         # no sample is dropped the two solves agree to rounding (the tests hold both to numpy
         # lstsq), so the weighted one replaces the fast one whole rather than pixel by pixel:
         # a per-pixel merge made XLA-CPU fuse the weighted solve into every output.
-        needs = _solve_all_used(images, mask, sample_mask, thresholds, shared)[-1]
+        needs = _flags(images, mask, sample_mask, thresholds)
         out = jax.lax.cond(
             jnp.any(needs & 1 == 1),
             lambda *a: _stacked(_solve_weighted(*a)),
-            lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared)[:-1]),
+            lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared)),
             images, lights, mask, sample_mask, thresholds)
     else:
         out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds))
@@ -379,29 +396,28 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
 
 
 @jax.jit
-def l2_needs_weights(images, mask, sample_mask, thresholds, shared):
+def l2_needs_weights(images, mask, sample_mask, thresholds):
     """The flag pass of `ps_l2`'s branch, taken on the host: an int32 whose bit 0 says that
     some pixel in `mask` must be solved by `_pixel_weighted` (a sample non-finite, saturated,
     shadowed or not in `sample_mask`) and bit 1 that some pixel in `mask` has a non-finite
     sample (one test of the sum of its samples: a sum that overflows counts as non-finite).
     One reduction over the pixels' flags, as cheap as a single bool. `images` `(K, H, W[,
-    C])`, `mask` `(H, W)` or None (every pixel), `sample_mask` `(K, H, W)` or None,
-    `thresholds` (cast to the images' dtype here) and `shared` (`host_constants(lights)`) as
-    `ps_l2` takes them."""
+    C])`, `mask` `(H, W)` or None (every pixel), `sample_mask` `(K, H, W)` or None and
+    `thresholds` (cast to the images' dtype here) as `ps_l2` takes them (the flags do
+    not depend on the lights)."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     if mask is None:
         mask = jnp.ones(images.shape[1:3], bool)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
-    shared = _cast_shared(shared, images.dtype)
-    return jnp.max(_solve_all_used(images, mask, sample_mask, thresholds, shared)[-1])
+    return jnp.max(_flags(images, mask, sample_mask, thresholds))
 
 
-def l2_branch(images, mask, sample_mask, thresholds, shared) -> str:
+def l2_branch(images, mask, sample_mask, thresholds) -> str:
     """`ps_l2`'s `branch`, taken on the host from one read of `l2_needs_weights`:
     `"all_used"`, or `"weighted_finite"` / `"weighted"` as every sample inside the mask is
     finite or not (outside it, the solve's status codes hide whatever a NaN computes)."""
-    return branch_of(int(l2_needs_weights(images, mask, sample_mask, thresholds, shared)))
+    return branch_of(int(l2_needs_weights(images, mask, sample_mask, thresholds)))
 
 
 def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:
@@ -413,7 +429,7 @@ def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:
         return ps_l2(images, lights, mask, sample_mask, thresholds)
     shared = host_constants(np.asarray(lights, np.float64))
     return ps_l2(images, lights, mask, sample_mask, thresholds, shared,
-                 branch=l2_branch(images, mask, sample_mask, thresholds, shared))
+                 branch=l2_branch(images, mask, sample_mask, thresholds))
 
 
 def branch_of(flags: int) -> str:
@@ -424,15 +440,13 @@ def branch_of(flags: int) -> str:
 
 
 @jax.jit
-def l2_batch_flags(images, mask, sample_mask, thresholds, shared):
-    """`l2_needs_weights` of each capture of a stack: `(N,)` int32. Arguments as
-    `l2_batch_solve` takes them."""
+def l2_batch_flags(images, mask, sample_mask, thresholds):
+    """`l2_needs_weights` of each capture of a stack: `(N,)` int32. `images`, `mask`,
+    `sample_mask` and `thresholds` as `l2_batch_solve` takes them."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
-    shared = _cast_shared(shared, images.dtype)
-    needs = _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=False,
-                            batched=True)[-1]
+    needs = _flags(images, mask, sample_mask, thresholds, flat=False, batched=True)
     return jnp.max(needs, axis=(1, 2))
 
 
@@ -441,7 +455,7 @@ def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, 
         images = images.astype(jnp.float32)
     if branch == "all_used":
         res = _solve_all_used(images, mask, sample_mask, thresholds,
-                              _cast_shared(shared, images.dtype), flat=False, batched=True)[:-1]
+                              _cast_shared(shared, images.dtype), flat=False, batched=True)
     else:
         res = _solve_weighted(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
                               flat=False, all_finite=branch == "weighted_finite", batched=True)

@@ -175,7 +175,7 @@ def photometric_stereo(
             images = to_device(images)
             mask, sample_mask = (None if m is None else to_device(m, bool)
                                  for m in (mask, sample_mask))
-            branch = l2_branch(images, mask, sample_mask, thresholds, dynamic["shared"])
+            branch = l2_branch(images, mask, sample_mask, thresholds)
             options = {**options, "branch": branch}
     static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
     try:
