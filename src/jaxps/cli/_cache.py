@@ -5,6 +5,9 @@ the cache they are read back from disk instead (about 1 s less per run at 1 MP, 
 docs/speed.md). The folder is `$JAXPS_CACHE_DIR`, else `$XDG_CACHE_HOME/jaxps/xla`, else
 `~/.cache/jaxps/xla`; `JAXPS_CACHE_DIR=off` (or empty) disables it. A cache folder the user
 already gave JAX (`JAX_COMPILATION_CACHE_DIR`) is left as it is.
+
+The same folder holds, under `executables/`, jaxps's own store of its hot programs
+(`core._store`): those are loaded without being traced and lowered again.
 """
 
 from __future__ import annotations
@@ -22,6 +25,9 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.P
 
     Call before the first jitted call of the process; every compiled program is then kept,
     however quick its compile. Also usable from Python scripts that run many short jobs.
+    jaxps's hot programs (the L2 solve and its flag pass, FC and DCT integration) are also
+    kept whole in `path / "executables"`, so that a new process loads them without tracing
+    them again (`core._store`).
 
     **Returns:** the cache folder, or None when disabled (`JAXPS_CACHE_DIR=off`) or when JAX
     already has a cache folder from its own settings.
@@ -45,4 +51,7 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.P
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", -1)
+    from ..core._store import use_store
+
+    use_store(path / "executables")
     return path

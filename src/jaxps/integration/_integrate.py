@@ -30,6 +30,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..core._host import to_device
 from ..core._safe import safe_sqrt
+from ..core._store import call as stored_call
 from ._grid import PRECONDITIONERS, bilateral, lsq_midpoint
 from ._poisson import _edge_div_of_means, _neumann_from_spectrum, _neumann_spectrum, dct_poisson
 
@@ -483,11 +484,13 @@ def integrate(
         # full-size temporaries between the steps.
         pixel_size = to_device(pixel_size, dtype)
         if method == "fc":
-            spectrum, any_valid = _fc_spectrum_from_normals(normals, mask, pixel_size)
-            height = _fc_height(spectrum, mask, normals.shape[:2])
+            spectrum, any_valid = stored_call(_fc_spectrum_from_normals, normals, mask,
+                                              pixel_size)
+            height = stored_call(_fc_height, spectrum, mask, shape=normals.shape[:2])
         else:
-            spectrum, valid = _dct_spectrum_from_normals(normals, mask, cam)
-            height, any_valid = _dct_height(spectrum, valid, pixel_size, cam, normals.shape[:2])
+            spectrum, valid = stored_call(_dct_spectrum_from_normals, normals, mask, cam=cam)
+            height, any_valid = stored_call(_dct_height, spectrum, valid, pixel_size, cam=cam,
+                                            shape=normals.shape[:2])
         if not bool(any_valid):
             raise ValueError("normals has no finite, non-zero normal inside mask")
         return height

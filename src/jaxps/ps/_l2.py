@@ -22,6 +22,7 @@ from ..core._host import OLDER_EMITTERS, CpuTuned, cpu_top_level
 from ..core._linalg import REL_DET_MIN, normal_equations, solve3
 from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
+from ..core._store import call as stored_call
 from ..lights._directions import MAX_LIGHT_CONDITION
 
 __all__ = ["PSResult", "branch_of", "host_constants", "l2_batch_flags", "l2_batch_solve",
@@ -417,7 +418,7 @@ def l2_branch(images, mask, sample_mask, thresholds) -> str:
     """`ps_l2`'s `branch`, taken on the host from one read of `l2_needs_weights`:
     `"all_used"`, or `"weighted_finite"` / `"weighted"` as every sample inside the mask is
     finite or not (outside it, the solve's status codes hide whatever a NaN computes)."""
-    return branch_of(int(l2_needs_weights(images, mask, sample_mask, thresholds)))
+    return branch_of(int(stored_call(l2_needs_weights, images, mask, sample_mask, thresholds)))
 
 
 def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:

@@ -24,6 +24,7 @@ from ..core._host import (
     fill_on_threads,
     to_device,
 )
+from ..core._store import call as stored_call
 from ..lights._directions import validate_lights
 from ._l2 import PSResult, host_constants, l2_branch
 
@@ -192,8 +193,11 @@ def photometric_stereo(
         if bands > 1 and cpu_top_level(images, lights, mask, sample_mask):
             return _in_row_bands(images, lights, mask, sample_mask, thresholds, method,
                                  static, bands)
-    return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
-               static=static)
+    if run is _run.__wrapped__:
+        return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
+                   static=static)
+    return stored_call(run, images, lights, mask, sample_mask, thresholds, dynamic,
+                       method=method, static=static)
 
 
 def _in_row_bands(images, lights, mask, sample_mask, thresholds, method, static, n):

@@ -1,0 +1,128 @@
+"""The store of compiled programs (`core._store`): what one process compiles, the next loads
+without tracing, with the same results; a changed code fingerprint or a broken file
+compiles afresh; calls inside a trace pass through."""
+
+import json
+import os
+import subprocess
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+import jaxps
+from jaxps.core import _store
+
+# One fresh process: JAX's persistent cache and the store in `folder` (or the cache alone, or
+# neither), then L2 (clean and dropping samples) and FC / DCT integration on a small face.
+# Prints the store's counts and writes the results to `out`.
+_SCRIPT = """
+import json, sys
+import numpy as np
+import jaxps
+from jaxps.cli import enable_compilation_cache
+from jaxps.core import _store
+folder, mode, out = sys.argv[1:]
+if mode != "off":
+    enable_compilation_cache(folder)
+if mode == "jax cache only":
+    _store.use_store(None)
+surface = jaxps.synthetic.face_like(40, 32)
+lights = jaxps.synthetic.scanner_lights(20.0)
+images = np.asarray(jaxps.synthetic.render_scene(surface, lights).images)
+clean = jaxps.photometric_stereo(images, lights)
+dropped = jaxps.photometric_stereo(images, lights, shadow_threshold=0.05)
+arrays = {f"{name}_{field}": np.asarray(getattr(res, field))
+          for name, res in (("clean", clean), ("dropped", dropped))
+          for field in ("normals", "albedo", "status", "n_used", "residual")}
+arrays["fc"] = np.asarray(jaxps.integrate(clean.normals))
+arrays["dct"] = np.asarray(jaxps.integrate(clean.normals, method="dct"))
+np.savez(out, **arrays)
+print(json.dumps(_store.stats()))
+"""
+
+
+def _run(folder, mode, out):
+    proc = subprocess.run([sys.executable, "-c", _SCRIPT, str(folder), mode, str(out)],
+                          capture_output=True, text=True, timeout=600, check=False,
+                          env={**os.environ, "JAXPS_CACHE_DIR": str(folder)})
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def test_a_new_process_loads_what_the_last_one_compiled_with_the_same_results(tmp_path):
+    folder = tmp_path / "cache"
+    # JAX's own cache filled first: the store must not serialize what JAX read back from it
+    # (such an executable serializes without its machine code and fails once loaded)
+    _run(folder, "jax cache only", tmp_path / "jax_cache.npz")
+    first = _run(folder, "store", tmp_path / "first.npz")
+    second = _run(folder, "store", tmp_path / "second.npz")
+    plain = _run(tmp_path / "unused", "off", tmp_path / "plain.npz")
+    # one flag pass (the thresholds are arguments), the clean and the weighted solve, and two
+    # programs each for FC and DCT
+    assert first == {"loaded": 0, "compiled": 7, "plain": 0}
+    assert second == {"loaded": 7, "compiled": 0, "plain": 0}
+    assert plain == {"loaded": 0, "compiled": 0, "plain": 0}
+    assert len(list((folder / "executables").glob("*.exe"))) == 7
+    ref = np.load(tmp_path / "plain.npz")
+    for name in ("jax_cache", "first", "second"):
+        got = np.load(tmp_path / f"{name}.npz")
+        for key in ref.files:
+            np.testing.assert_array_equal(got[key], ref[key], err_msg=f"{name} {key}")
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    """The store on in `tmp_path` for this test only, with counts from zero."""
+    for name, value in (("_folder", None), ("_executables", {}), ("_fingerprint", None),
+                        ("_stats", {"loaded": 0, "compiled": 0, "plain": 0})):
+        monkeypatch.setattr(_store, name, value)
+    _store.use_store(tmp_path)
+    return tmp_path
+
+
+def _normals():
+    surface = jaxps.synthetic.face_like(24, 20)
+    return np.asarray(surface.normals), np.asarray(surface.mask)
+
+
+def _integrate_fc(normals):
+    from jaxps.integration._integrate import _fc_spectrum_from_normals
+
+    return _store.call(_fc_spectrum_from_normals, normals, np.ones(normals.shape[:2], bool),
+                       np.float32(1.0))
+
+
+def test_a_changed_fingerprint_or_a_broken_file_compiles_afresh(store, monkeypatch):
+    normals, _ = _normals()
+    want = _integrate_fc(normals)
+    assert _store.stats()["compiled"] == 1
+    monkeypatch.setattr(_store, "_executables", {})  # as a new process
+    np.testing.assert_array_equal(_integrate_fc(normals)[0], want[0])
+    assert _store.stats()["loaded"] == 1
+    # new code: another fingerprint, another key
+    monkeypatch.setattr(_store, "_executables", {})
+    monkeypatch.setattr(_store, "_fingerprint", "another version of jaxps")
+    np.testing.assert_array_equal(_integrate_fc(normals)[0], want[0])
+    assert _store.stats()["compiled"] == 2
+    assert len(list(store.glob("*.exe"))) == 2
+    # a torn or foreign file: removed, compiled again
+    for path in store.glob("*.exe"):
+        path.write_bytes(b"not an executable")
+    monkeypatch.setattr(_store, "_executables", {})
+    np.testing.assert_array_equal(_integrate_fc(normals)[0], want[0])
+    assert _store.stats() == {"loaded": 1, "compiled": 3, "plain": 0}
+
+
+def test_calls_inside_a_trace_or_with_the_store_off_pass_through(store):
+    surface = jaxps.synthetic.face_like(24, 20)
+    lights = jaxps.synthetic.scanner_lights(20.0)
+    images = np.asarray(jaxps.synthetic.render_scene(surface, lights).images)
+    inside = jax.jit(lambda x: jaxps.photometric_stereo(x, lights).normals)(images)
+    assert _store.stats() == {"loaded": 0, "compiled": 0, "plain": 0}
+    assert not list(store.glob("*.exe"))
+    _store.use_store(None)
+    np.testing.assert_allclose(jaxps.photometric_stereo(images, lights).normals, inside,
+                               atol=1e-6)
+    assert _store.stats() == {"loaded": 0, "compiled": 0, "plain": 0}
