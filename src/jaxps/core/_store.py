@@ -22,6 +22,7 @@ version, a program that does not serialize) falls back to the plain jitted call.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import pathlib
@@ -37,6 +38,8 @@ _folder: pathlib.Path | None = None
 _executables: dict = {}  # key -> loaded executable, or None: this key takes the plain jit
 _fingerprint: str | None = None
 _stats = {"loaded": 0, "compiled": 0, "plain": 0}
+_LOG_SETTINGS = ("jax_log_compiles", "jax_logging_level", "jax_debug_log_modules",
+                 "jax_log_checkpoint_residuals")
 
 
 def use_store(folder: str | os.PathLike | None) -> None:
@@ -121,8 +124,9 @@ def _code_fingerprint() -> str:
         for path in sorted(package.rglob("*.py")):
             digest.update(str(path.relative_to(package)).encode())
             digest.update(path.read_bytes())
-        # every JAX setting but the caches' own (`_compile` switches one off for a moment)
-        config = sorted((k, repr(v)) for k, v in jax.config.values.items() if "cache" not in k)
+        # every JAX setting but those of caches and logs, which do not change a program
+        config = sorted((k, repr(v)) for k, v in jax.config.values.items()
+                        if "cache" not in k and k not in _LOG_SETTINGS)
         for part in (jax.__version__, jaxlib.__version__, np.__version__, repr(config),
                      os.environ.get("XLA_FLAGS", ""), platform.machine(), _cpu()):
             digest.update(part.encode())
@@ -163,18 +167,10 @@ def _load(key: str):
 def _compile(jitted, options, args, static, key):
     """Trace, lower and compile `jitted` for these arguments, then store the executable;
     None (the plain jit from then on) if any of it fails."""
-    import jax
-
     try:
         lowered = jitted.lower(*args, **static)
-        # Compiled anew, not read from JAX's persistent cache: an executable loaded from
-        # there serializes without its machine code, and fails to run once loaded.
-        cached = jax.config.jax_enable_compilation_cache
-        jax.config.update("jax_enable_compilation_cache", False)
-        try:
+        with _without_jax_cache():
             executable = lowered.compile(options) if options else lowered.compile()
-        finally:
-            jax.config.update("jax_enable_compilation_cache", cached)
         from jax.experimental import serialize_executable
 
         blob = pickle.dumps(serialize_executable.serialize(executable))
@@ -189,6 +185,29 @@ def _compile(jitted, options, args, static, key):
         pass  # a read-only folder: this process keeps the executable in memory
     _stats["compiled"] += 1
     return executable
+
+
+@contextlib.contextmanager
+def _without_jax_cache():
+    """Compiles inside neither read nor write JAX's persistent cache.
+
+    An executable read back from that cache serializes without its machine code, and fails
+    to run once loaded. JAX decides once per process whether its cache is in use
+    (`compilation_cache.is_cache_used`), so switching `jax_enable_compilation_cache` off for a
+    moment would either do nothing or keep the cache off for the rest of the process; this
+    sets that decision for the compiles inside and puts it back after. JAX internals: with a
+    JAX that has no such state this raises, and `_compile` keeps the plain jit.
+    """
+    from jax._src import compilation_cache as cache
+
+    with cache._cache_initialized_mutex:
+        saved = cache._cache_checked, cache._cache_used
+        cache._cache_checked, cache._cache_used = True, False
+    try:
+        yield
+    finally:
+        with cache._cache_initialized_mutex:
+            cache._cache_checked, cache._cache_used = saved
 
 
 def _remove(key: str) -> None:
