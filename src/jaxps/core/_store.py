@@ -18,6 +18,11 @@ It is on only after `use_store(folder)`, which `enable_compilation_cache` calls 
 command line, and for scripts that turn the cache on), and only for top-level calls on the
 CPU of the programs that go through `call`. Anything that fails (a file from another
 version, a program that does not serialize) falls back to the plain jitted call.
+
+The files are read back with `pickle`, so the folder must be as private as the code (the
+default is in the user's own cache directory; the files are written readable by their owner
+only). Nothing is evicted: each new jaxps version or image size adds a few files of tens of
+KB, and deleting the folder is always safe.
 """
 
 from __future__ import annotations
