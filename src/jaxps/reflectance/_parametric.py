@@ -62,7 +62,6 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 from ..core._host import NO_YNN, CpuTuned
-from ..core._store import call as stored_call
 from ..shading._oren_nayar import SIGMA_MAX, _shading
 
 __all__ = ["PARAMETRIC_METHODS"]
@@ -235,16 +234,14 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
         # unused shape parameter leave J rank-deficient, and float32 Cholesky then failed
         solver = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-6)
     static = (diffuse, specular, n_regions, bool(frame_gains))
-    by_name = dict(zip(_STATIC_NAMES, static))  # for the store of compiled programs
     sol = _solve(p0, data_of(train), solver, *static, int(max_steps))
     steps = int(sol.stats["num_steps"])
     for _ in range(rounds if refine_normals else 0):
         normals = normals.copy()
-        normals[pix] = np.asarray(stored_call(_refine_jit, sol.value, data_of(pix), **by_name))
+        normals[pix] = np.asarray(_refine_jit(sol.value, data_of(pix), *static))
         sol = _solve(sol.value, data_of(train), solver, *static, int(max_steps))
         steps += int(sol.stats["num_steps"])
-    pred, rho_s, rho_d, shape, gains = stored_call(_predict_jit, sol.value, data_of(pix),
-                                                   **by_name)
+    pred, rho_s, rho_d, shape, gains = _predict_jit(sol.value, data_of(pix), *static)
     alb = np.asarray(albedo).reshape(-1)[pix]
     ratio = np.ones((h * w,), dtype)
     ratio[pix] = np.where(alb > 0, np.asarray(rho_d) / np.where(alb > 0, alb, 1), 1)
@@ -258,7 +255,7 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     message = "converged" if ok else str(sol.result).split("<", 1)[-1].rstrip(">")
     if method.endswith("_residual"):
         data = data_of(train)
-        base, _, rho_d_train, _, _ = stored_call(_predict_jit, sol.value, data, **by_name)
+        base, _, rho_d_train, _, _ = _predict_jit(sol.value, data, *static)
         u = _half_diff(data[0], lights)
         box = jnp.stack([jnp.min(u, axis=(0, 1)), jnp.max(u, axis=(0, 1))])
         mlp = _init_residual(key, dtype)
@@ -368,8 +365,7 @@ def _refine(p, data, diffuse, specular, n_regions, fit_gains, steps=8):
     return jax.vmap(one, in_axes=(0, 1, 1, 0))(normals, y, w, rho_s)
 
 
-_STATIC_NAMES = ("diffuse", "specular", "n_regions", "fit_gains")
-_refine_jit = jax.jit(_refine, static_argnames=_STATIC_NAMES)
+_refine_jit = jax.jit(_refine, static_argnames=("diffuse", "specular", "n_regions", "fit_gains"))
 
 
 def _solve(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps):
@@ -384,7 +380,8 @@ def _solve(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps)
 # Without YNNPACK fusions (`core._host.NO_YNN`): each LM step's sums over the K frames ran
 # faster in XLA's own loops (`benchmarks/bench_ynn.py`).
 _solve = CpuTuned(_solve, NO_YNN, jit=eqx.filter_jit)
-_predict_jit = jax.jit(_predict, static_argnames=_STATIC_NAMES)
+_predict_jit = jax.jit(_predict, static_argnames=("diffuse", "specular", "n_regions",
+                                                   "fit_gains"))
 
 
 @functools.partial(jax.jit, static_argnames="method")
