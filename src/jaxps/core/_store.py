@@ -16,8 +16,9 @@ This store finds an executable by what tracing depends on instead, then loads it
 
 It is on only after `use_store(folder)`, which `enable_compilation_cache` calls (so for the
 command line, and for scripts that turn the cache on), and only for top-level calls on the
-CPU of the programs that go through `call`. Anything that fails (a file from another
-version, a program that does not serialize) falls back to the plain jitted call.
+CPU of the programs that go through `call`. Programs with custom calls (LAPACK) are never
+stored, and anything that fails (a file from another version, a program that does not
+serialize) falls back to the plain jitted call.
 
 The files are read back with `pickle`, so the folder must be as private as the code (the
 default is in the user's own cache directory; the files are written readable by their owner
@@ -176,6 +177,12 @@ def _compile(jitted, options, args, static, key):
         lowered = jitted.lower(*args, **static)
         with _without_jax_cache():
             executable = lowered.compile(options) if options else lowered.compile()
+        if "custom_call_target" in executable.as_text():
+            # e.g. LAPACK: jaxlib sets such a call's function pointer when it lowers one, so
+            # in a process that only loads the executable the call jumps nowhere (a crash,
+            # not an error to catch). Such programs take the plain jit.
+            _stats["plain"] += 1
+            return None
         from jax.experimental import serialize_executable
 
         blob = pickle.dumps(serialize_executable.serialize(executable))
