@@ -41,7 +41,7 @@ from ._host import cpu_top_level
 __all__ = ["call", "stats", "use_store"]
 
 _folder: pathlib.Path | None = None
-_executables: dict = {}  # key -> loaded executable, or None: this key takes the plain jit
+_executables: dict = {}  # key -> executable, or None: this key takes the plain jit
 _fingerprint: str | None = None
 _stats = {"loaded": 0, "compiled": 0, "plain": 0}
 _LOG_SETTINGS = ("jax_log_compiles", "jax_logging_level", "jax_debug_log_modules",
@@ -58,46 +58,34 @@ def use_store(folder: str | os.PathLike | None) -> None:
 
 def stats() -> dict:
     """How many calls of this process loaded an executable from the store, compiled and
-    stored one, or ran the plain jitted program (when the store is off, each call counts
-    once per new key, not per call)."""
+    stored one, or found a program the store cannot keep (it then runs the plain jit; each
+    such program counts once). Calls with the store off count nowhere."""
     return dict(_stats)
 
 
 def call(program, *args, **static):
     """`program(*args, **static)`, from the store where it holds the executable.
 
-    `program`: a `jax.jit` function or a `core._host.CpuTuned` one; `args` its dynamic
-    arguments, positional; `static` its static arguments, by name. Nothing it takes may be
-    donated: a failed first run of a loaded executable is run again with the plain jit.
+    `program`: a `jax.jit` function or a `core._host.CpuTuned` one (anything else is called
+    as it is); `args` its dynamic arguments, positional; `static` its static arguments, by
+    name. Nothing it takes may be donated: a failed first run of a loaded executable is run
+    again with the plain jit.
     """
-    if _folder is None or not cpu_top_level(args, static):
-        return program(*args, **static)
     jitted, options = _jit_and_options(program)
+    if _folder is None or not hasattr(jitted, "lower") or not cpu_top_level(args, static):
+        return program(*args, **static)
     try:
         key = _key(jitted, options, args, static)
     except TypeError:  # an argument that is not an array: no key
         return program(*args, **static)
-    executable = _executables.get(key, False)
-    if executable is False:
-        executable = _load(key)
-        if executable is not None:
-            try:  # a first run of what was loaded: a broken file fails here, not later
-                import jax
-
-                return_value = jax.block_until_ready(executable(*args))
-            except Exception:  # noqa: BLE001 - whatever a loaded executable raises, recompile
-                _remove(key)
-                executable = None
-            else:
-                _executables[key] = executable
-                _stats["loaded"] += 1
-                return return_value
-        if executable is None:
-            executable = _compile(jitted, options, args, static, key)
-        _executables[key] = executable
-    if executable is None:
-        return program(*args, **static)
-    return executable(*args)
+    if key not in _executables:
+        loaded = _load_and_run(key, args)
+        if loaded is not None:
+            _executables[key], result = loaded
+            return result
+        _executables[key] = _compile(jitted, options, args, static, key)
+    executable = _executables[key]
+    return program(*args, **static) if executable is None else executable(*args)
 
 
 def _jit_and_options(program):
@@ -153,6 +141,23 @@ def _cpu() -> str:
 
 def _path(key: str) -> pathlib.Path:
     return _folder / f"{key}.exe"
+
+
+def _load_and_run(key: str, args):
+    """The stored executable for `key` and its result on `args`, or None. Its first run is
+    waited for, so that a broken file fails here (and is removed), not in the caller."""
+    executable = _load(key)
+    if executable is None:
+        return None
+    try:
+        import jax
+
+        result = jax.block_until_ready(executable(*args))
+    except Exception:  # noqa: BLE001 - whatever a loaded executable raises, recompile
+        _remove(key)
+        return None
+    _stats["loaded"] += 1
+    return executable, result
 
 
 def _load(key: str):

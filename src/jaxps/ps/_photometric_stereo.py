@@ -193,9 +193,6 @@ def photometric_stereo(
         if bands > 1 and cpu_top_level(images, lights, mask, sample_mask):
             return _in_row_bands(images, lights, mask, sample_mask, thresholds, method,
                                  static, bands)
-    if run is _run.__wrapped__:
-        return run(images, lights, mask, sample_mask, thresholds, dynamic, method=method,
-                   static=static)
     return stored_call(run, images, lights, mask, sample_mask, thresholds, dynamic,
                        method=method, static=static)
 
