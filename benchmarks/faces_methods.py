@@ -46,7 +46,7 @@ def solve_all(cap, repeats=3):
     """Every method on one capture: `{method: (PSResult, seconds after compile)}`."""
     out = {}
     for method in METHODS:
-        def run():
+        def run(method=method):
             return jaxps.photometric_stereo(cap.images, cap.lights, mask=cap.mask,
                                             sample_mask=~cap.saturated, method=method)
         res = block(run())
