@@ -55,7 +55,7 @@ def _reorder_inverse(v):
 
 def _neumann_spectrum(rhs):
     """The half spectrum of $L^{-1}$ rhs reordered, for the Neumann Laplacian $L$ (mean 0):
-    `_neumann_solve` up to its inverse FFT.
+    $L^{-1}$ rhs is `_neumann_from_spectrum` of it, so the solve is one real 2-D FFT each way.
 
     The DCT-II of rhs, a division by $L$'s eigenvalues and the inverse DCT-II, composed into
     one pass over the half spectrum. Makhoul ("A fast cosine transform in one and multiple
@@ -97,11 +97,6 @@ def _neumann_spectrum(rhs):
 def _neumann_from_spectrum(g, shape):
     """`_neumann_spectrum`'s half spectrum back to the `shape` grid (inverse FFT, reorder)."""
     return _reorder_inverse(jnp.fft.irfft2(g, s=shape))
-
-
-def _neumann_solve(rhs):
-    """$L^{-1}$ rhs for the Neumann Laplacian $L$ (mean 0), through one real 2-D FFT each way."""
-    return _neumann_from_spectrum(_neumann_spectrum(rhs), rhs.shape)
 
 
 def _edge_div_of_means(gc, gr):

@@ -151,7 +151,7 @@ def _ps_oren_nayar(images, lights, mask, sample_mask, thresholds, fixed, pool, f
     core = eqx.filter_jit(_core)
     out = core(images, lights, mask, sample_mask, thresholds, base, fixed,
                jnp.asarray(sigma0**2, dtype), jnp.asarray(sigma_max**2, dtype), solver,
-               form=form, max_steps=max_steps, pool_stage=False)
+               form=form, max_steps=max_steps)
     if pool:
         normals, _, status, _, _, info = out
         good = mask & (status == Status.OK) & (info["sigma_status"] != Status.TOO_FEW_LIGHTS)
@@ -161,8 +161,7 @@ def _ps_oren_nayar(images, lights, mask, sample_mask, thresholds, fixed, pool, f
         steps0 = info["steps"]
         out = core(images, lights, mask, sample_mask, thresholds, base,
                    jnp.broadcast_to(fit.sigma, (h, w)), jnp.asarray(sigma0**2, dtype),
-                   jnp.asarray(sigma_max**2, dtype), solver, form=form, max_steps=max_steps,
-                   pool_stage=True)
+                   jnp.asarray(sigma_max**2, dtype), solver, form=form, max_steps=max_steps)
         info = dict(out.info)
         info["steps"] = info["steps"] + steps0
         info["sigma_status"] = jnp.where(mask, fit.status, Status.MASKED).astype(jnp.int32)
@@ -171,7 +170,7 @@ def _ps_oren_nayar(images, lights, mask, sample_mask, thresholds, fixed, pool, f
 
 
 def _core(images, lights, mask, sample_mask, thresholds, base, fixed, s0, s_max, solver, *,
-          form, max_steps, pool_stage):
+          form, max_steps):
     k, h, w, c = images.shape
     dtype = images.dtype
     _, saturation, shadow = thresholds
