@@ -38,11 +38,23 @@ import jaxps
 
 try:
     from benchmarks._common import block, data_dir, environment, write_json
-    from benchmarks.bench_faces import SUBJECTS, load_subject, references, register_subject
+    from benchmarks.bench_faces import (
+        SUBJECTS,
+        load_subject,
+        loo_choice,
+        references,
+        register_subject,
+    )
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
     from benchmarks._common import block, data_dir, environment, write_json
-    from benchmarks.bench_faces import SUBJECTS, load_subject, references, register_subject
+    from benchmarks.bench_faces import (
+        SUBJECTS,
+        load_subject,
+        loo_choice,
+        references,
+        register_subject,
+    )
 
 CROSS = ((0, 0), (25, 0), (-25, 0), (0, 20), (0, -20))
 METHODS = ("l2", "barsky", "l1", "irls", "sbl", "oren_nayar")
@@ -95,17 +107,12 @@ def synthetic() -> dict:
 
 
 def loo(subjects: dict) -> dict:
-    """Leave-one-subject-out choice of the method (see the module's docstring)."""
-    out = {}
-    for held in subjects:
-        rest = [r for s, r in subjects.items() if s != held]
-        scores = {m: float(np.median([r["methods"][m]["median_deg"] for r in rest]))
-                  for m in METHODS}
-        best = min(scores, key=scores.get)
-        out[held] = {"chosen": best, "score_on_others_deg": scores[best],
-                     "held_out_median_deg": subjects[held]["methods"][best]["median_deg"],
-                     "l2_median_deg": subjects[held]["methods"]["l2"]["median_deg"]}
-    return out
+    """Leave-one-subject-out choice of the method (see the module's docstring):
+    `bench_faces.loo_choice` over the methods, with each held-out subject's L2 figure."""
+    view = {s: {"candidates": r["methods"], "floor": {"median_deg": r["floor_median_deg"]}}
+            for s, r in subjects.items()}
+    return {s: {**v, "l2_median_deg": subjects[s]["methods"]["l2"]["median_deg"]}
+            for s, v in loo_choice(view, METHODS).items()}
 
 
 def main(argv=None):
