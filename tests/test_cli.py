@@ -187,11 +187,13 @@ def test_errors_are_reported_not_raised(tmp_path, capsys, data):
     assert "no frame files" in capsys.readouterr().err
 
 
-def test_parser_lists_the_intensity_methods_of_the_library():
+def test_parser_lists_the_methods_of_the_library():
     # cli/_args.py repeats them so that `jaxps --help` imports no jax.
     from jaxps.cli import _args
 
     assert _args.INTENSITY_METHODS == jaxps.INTENSITY_METHODS
+    assert _args.PS_METHODS == jaxps.PS_METHODS
+    assert _args.INTEGRATION_METHODS == jaxps.INTEGRATION_METHODS
 
 
 def test_compilation_cache_fills_its_folder_and_can_be_turned_off(tmp_path):
