@@ -267,7 +267,7 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
     module, name = _SOLVERS[method]
     solver = getattr(importlib.import_module(f"{__package__}.{module}"), name)
     res = solver(images, jnp.asarray(lights, dtype), mask, sample_mask, thresholds,
-                           **dict(static), **dynamic)
+                 **dict(static), **dynamic)
     albedo = res.albedo[..., 0] if grey and method != "l2" else res.albedo
     return PSResult(
         res.normals.astype(out_dtype),
