@@ -16,9 +16,9 @@ This store finds an executable by what tracing depends on instead, then loads it
 
 It is on only after `use_store(folder)`, which `enable_compilation_cache` calls (so for the
 command line, and for scripts that turn the cache on), and only for top-level calls on the
-CPU of the programs that go through `call`. Programs with custom calls (LAPACK) are never
-stored, and anything that fails (a file from another version, a program that does not
-serialize) falls back to the plain jitted call.
+CPU of the programs that go through `call`. Programs with custom calls other than jaxlib's
+LAPACK kernels are never stored, and anything that fails (a file from another version, a
+program that does not serialize) falls back to the plain jitted call.
 
 The files are read back with `pickle`, so the folder must be as private as the code (the
 default is in the user's own cache directory; the files are written readable by their owner
@@ -34,6 +34,7 @@ import os
 import pathlib
 import pickle
 import platform
+import re
 import tempfile
 
 from ._host import cpu_top_level
@@ -168,7 +169,9 @@ def _load(key: str):
         from jax.experimental import serialize_executable
 
         with open(path, "rb") as f:
-            payload, in_tree, out_tree = pickle.load(f)
+            payload, in_tree, out_tree, lapack = pickle.load(f)
+        if lapack:
+            _initialize_lapack()
         return serialize_executable.deserialize_and_load(payload, in_tree, out_tree)
     except Exception:  # noqa: BLE001 - another jaxlib's file, a torn write: compile afresh
         _remove(key)
@@ -178,19 +181,23 @@ def _load(key: str):
 def _compile(jitted, options, args, static, key):
     """Trace, lower and compile `jitted` for these arguments, then store the executable;
     None (the plain jit from then on) if any of it fails."""
+    import jax
+
     try:
         lowered = jitted.lower(*args, **static)
         with _without_jax_cache():
             executable = lowered.compile(options) if options else lowered.compile()
-        if "custom_call_target" in executable.as_text():
-            # e.g. LAPACK: jaxlib sets such a call's function pointer when it lowers one, so
-            # in a process that only loads the executable the call jumps nowhere (a crash,
-            # not an error to catch). Such programs take the plain jit.
+        targets = set(re.findall(r'custom_call_target="([^"]*)"', executable.as_text()))
+        if any(not t.startswith("lapack_") for t in targets):
+            # a custom call whose set-up in a process that only loads it is unknown
             _stats["plain"] += 1
             return None
         from jax.experimental import serialize_executable
 
-        blob = pickle.dumps(serialize_executable.serialize(executable))
+        blob = pickle.dumps((*serialize_executable.serialize(executable), bool(targets)))
+        _, in_tree, out_tree, _ = pickle.loads(blob)
+        for tree in (in_tree, out_tree):  # e.g. an equinox enumeration item fails here once
+            jax.tree.unflatten(tree, [0] * tree.num_leaves)  # pickled: keep the plain jit
     except Exception:  # noqa: BLE001 - a program that does not lower or serialize: plain jit
         _stats["plain"] += 1
         return None
@@ -225,6 +232,16 @@ def _without_jax_cache():
     finally:
         with cache._cache_initialized_mutex:
             cache._cache_checked, cache._cache_used = saved
+
+
+def _initialize_lapack() -> None:
+    """Set jaxlib's LAPACK function pointers, as lowering a LAPACK call does. A process that
+    only loads an executable with such a call lowers none, and without this the call jumps
+    to a null pointer (a crash, not an error to catch). JAX internals: with a JAX that has no
+    such function this raises, and `_load` compiles afresh."""
+    from jax._src.lax.linalg import initialize_lapack
+
+    initialize_lapack()
 
 
 def _remove(key: str) -> None:

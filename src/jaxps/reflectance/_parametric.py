@@ -62,6 +62,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 from ..core._host import NO_YNN, CpuTuned
+from ..core._store import call as stored_call
 from ..shading._oren_nayar import SIGMA_MAX, _shading
 
 __all__ = ["PARAMETRIC_METHODS"]
@@ -229,19 +230,25 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
         np.asarray([_from_bounded(_START[diffuse], diffuse) if diffuse != "lambert" else 0.0,
                     _from_bounded(_START[specular], specular) if specular else 0.0], dtype),
         np.zeros((k,), dtype)])
-    if solver is None:
-        # QR (the default), not Cholesky of the normal equations: the centred log-gains and an
-        # unused shape parameter leave J rank-deficient, and float32 Cholesky then failed
-        solver = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-6)
-    static = (diffuse, specular, n_regions, bool(frame_gains))
-    sol = _solve(p0, data_of(train), solver, *static, int(max_steps))
-    steps = int(sol.stats["num_steps"])
+    static = dict(zip(_STATIC_NAMES, (diffuse, specular, n_regions, bool(frame_gains))))
+
+    def solve(p):
+        """One Levenberg-Marquardt fit from `p`: the value, the result, the step count."""
+        if solver is None:  # the default: a program of arrays and names, kept by the store
+            value, code, steps = stored_call(_solve_default, p, data_of(train), **static,
+                                             max_steps=int(max_steps))
+            return value, jax.tree.unflatten(_RESULT_TREE, code), steps
+        sol = _solve(p, data_of(train), solver, *static.values(), int(max_steps))
+        return sol.value, sol.result, sol.stats["num_steps"]
+
+    value, result, steps = solve(p0)
+    steps = int(steps)
     for _ in range(rounds if refine_normals else 0):
         normals = normals.copy()
-        normals[pix] = np.asarray(_refine_jit(sol.value, data_of(pix), *static))
-        sol = _solve(sol.value, data_of(train), solver, *static, int(max_steps))
-        steps += int(sol.stats["num_steps"])
-    pred, rho_s, rho_d, shape, gains = _predict_jit(sol.value, data_of(pix), *static)
+        normals[pix] = np.asarray(stored_call(_refine_jit, value, data_of(pix), **static))
+        value, result, more = solve(value)
+        steps += int(more)
+    pred, rho_s, rho_d, shape, gains = stored_call(_predict_jit, value, data_of(pix), **static)
     alb = np.asarray(albedo).reshape(-1)[pix]
     ratio = np.ones((h * w,), dtype)
     ratio[pix] = np.where(alb > 0, np.asarray(rho_d) / np.where(alb > 0, alb, 1), 1)
@@ -251,18 +258,18 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
                               jax.device_put(normals.reshape(h, w, 3)) if refine_normals else None)
     sel = usable.reshape(k, -1)[:, pix]
     target = images.reshape(k, -1)[:, pix]
-    ok = bool(sol.result == optx.RESULTS.successful)
-    message = "converged" if ok else str(sol.result).split("<", 1)[-1].rstrip(">")
+    ok = bool(result == optx.RESULTS.successful)
+    message = "converged" if ok else str(result).split("<", 1)[-1].rstrip(">")
     if method.endswith("_residual"):
         data = data_of(train)
-        base, _, rho_d_train, _, _ = _predict_jit(sol.value, data, *static)
+        base, _, rho_d_train, _, _ = stored_call(_predict_jit, value, data, **static)
         u = _half_diff(data[0], lights)
         box = jnp.stack([jnp.min(u, axis=(0, 1)), jnp.max(u, axis=(0, 1))])
         mlp = _init_residual(key, dtype)
         flat, unravel = ravel_pytree(mlp)
         amp = RESIDUAL_BOUND * gains[:, None] * rho_d_train[None]
-        res = _solve_residual(flat, (_scaled(u, box), base, amp, data[2], data[3]), solver,
-                              int(max_steps))
+        res = _solve_residual(flat, (_scaled(u, box), base, amp, data[2], data[3]),
+                              _DEFAULT_SOLVER if solver is None else solver, int(max_steps))
         steps += int(res.stats["num_steps"])
         ok = ok and bool(res.result == optx.RESULTS.successful)
         message += "; residual MLP: " + ("converged" if res.result == optx.RESULTS.successful
@@ -365,7 +372,8 @@ def _refine(p, data, diffuse, specular, n_regions, fit_gains, steps=8):
     return jax.vmap(one, in_axes=(0, 1, 1, 0))(normals, y, w, rho_s)
 
 
-_refine_jit = jax.jit(_refine, static_argnames=("diffuse", "specular", "n_regions", "fit_gains"))
+_STATIC_NAMES = ("diffuse", "specular", "n_regions", "fit_gains")
+_refine_jit = jax.jit(_refine, static_argnames=_STATIC_NAMES)
 
 
 def _solve(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps):
@@ -377,11 +385,31 @@ def _solve(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps)
     return optx.least_squares(residuals, solver, p0, args=data, max_steps=max_steps, throw=False)
 
 
+# QR (optimistix's default), not Cholesky of the normal equations: the centred log-gains and
+# an unused shape parameter leave J rank-deficient, and float32 Cholesky then failed.
+_DEFAULT_SOLVER = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-6)
+
+
+def _solve_default(p0, data, diffuse, specular, n_regions, fit_gains, max_steps):
+    """`_solve` with `_DEFAULT_SOLVER`: every argument an array or a name, so that the
+    store of compiled programs keeps it (a warm `jaxps relight` then traces no fit), and only
+    the parts of the solution that `fit` reads."""
+    sol = _solve.__wrapped__(p0, data, _DEFAULT_SOLVER, diffuse, specular, n_regions, fit_gains,
+                             max_steps)
+    # the result as its int32 code: an equinox enumeration item does not survive the pickled
+    # tree of a stored executable (`fit` rebuilds it with `_RESULT_TREE`)
+    return sol.value, jax.tree.leaves(sol.result), sol.stats["num_steps"]
+
+
+_RESULT_TREE = jax.tree.structure(optx.RESULTS.successful)
+
+
 # Without YNNPACK fusions (`core._host.NO_YNN`): each LM step's sums over the K frames ran
 # faster in XLA's own loops (`benchmarks/bench_ynn.py`).
 _solve = CpuTuned(_solve, NO_YNN, jit=eqx.filter_jit)
-_predict_jit = jax.jit(_predict, static_argnames=("diffuse", "specular", "n_regions",
-                                                   "fit_gains"))
+_solve_default = CpuTuned(_solve_default, NO_YNN,
+                          static_argnames=(*_STATIC_NAMES, "max_steps"))
+_predict_jit = jax.jit(_predict, static_argnames=_STATIC_NAMES)
 
 
 @functools.partial(jax.jit, static_argnames="method")
