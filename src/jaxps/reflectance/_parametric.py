@@ -376,7 +376,7 @@ _STATIC_NAMES = ("diffuse", "specular", "n_regions", "fit_gains")
 _refine_jit = jax.jit(_refine, static_argnames=_STATIC_NAMES)
 
 
-def _solve(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps):
+def _least_squares(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps):
     def residuals(p, data):
         w = data[3]
         return (w * (_predict(p, data, diffuse, specular, n_regions, fit_gains)[0] - data[2])
@@ -391,11 +391,11 @@ _DEFAULT_SOLVER = optx.LevenbergMarquardt(rtol=1e-4, atol=1e-6)
 
 
 def _solve_default(p0, data, diffuse, specular, n_regions, fit_gains, max_steps):
-    """`_solve` with `_DEFAULT_SOLVER`: every argument an array or a name, so that the
+    """`_least_squares` with `_DEFAULT_SOLVER`: every argument an array or a name, so that the
     store of compiled programs keeps it (a warm `jaxps relight` then traces no fit), and only
     the parts of the solution that `fit` reads."""
-    sol = _solve.__wrapped__(p0, data, _DEFAULT_SOLVER, diffuse, specular, n_regions, fit_gains,
-                             max_steps)
+    sol = _least_squares(p0, data, _DEFAULT_SOLVER, diffuse, specular, n_regions, fit_gains,
+                         max_steps)
     # the result as its int32 code: an equinox enumeration item does not survive the pickled
     # tree of a stored executable (`fit` rebuilds it with `_RESULT_TREE`)
     return sol.value, jax.tree.leaves(sol.result), sol.stats["num_steps"]
@@ -406,7 +406,7 @@ _RESULT_TREE = jax.tree.structure(optx.RESULTS.successful)
 
 # Without YNNPACK fusions (`core._host.NO_YNN`): each LM step's sums over the K frames ran
 # faster in XLA's own loops (`benchmarks/bench_ynn.py`).
-_solve = CpuTuned(_solve, NO_YNN, jit=eqx.filter_jit)
+_solve = CpuTuned(_least_squares, NO_YNN, jit=eqx.filter_jit)
 _solve_default = CpuTuned(_solve_default, NO_YNN,
                           static_argnames=(*_STATIC_NAMES, "max_steps"))
 _predict_jit = jax.jit(_predict, static_argnames=_STATIC_NAMES)
