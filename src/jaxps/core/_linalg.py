@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array
 
-__all__ = ["REL_DET_MIN", "normal_equations", "solve3"]
+__all__ = ["REL_DET_MIN", "adjugate3", "normal_equations", "relative_det", "solve3"]
 
 # det(A) / (trace(A)/3)^3 below this marks the usable lights as not spanning 3-D
 # (roughly a light-matrix condition number above 1e3).
@@ -25,17 +25,9 @@ def normal_equations(w, lights, ys):
     return a, [[sum(wl[k][p] * y[k] for k in ks) for p in range(3)] for y in ys]
 
 
-def solve3(a, r) -> tuple[Array, Array]:
-    """Solve the symmetric 3x3 system `a x = r` by cofactors.
-
-    `a` is indexable as `a[p][q]` (a `(3, 3)` array or nested lists of per-pixel scalars) and
-    `r` as `r[p]` (a `(3, ...)` array or a list of three arrays). Returns the `(3, ...)`
-    solution and det(a) / (trace(a)/3)^3, a scale-free conditioning measure (0 when singular).
-
-    Written with scalar products only: under `vmap`, a batched matrix product or a reduction
-    over a small axis becomes a slow batched op on CPU, while these fuse into one elementwise
-    loop over pixels.
-    """
+def adjugate3(a) -> tuple[list, Array]:
+    """The adjugate (cofactor matrix, symmetric) and determinant of a symmetric 3x3 `a`,
+    indexable as in `solve3`: `adj` as nested lists, so that `a^{-1} = adj / det`."""
     c00 = a[1][1] * a[2][2] - a[1][2] * a[2][1]
     c01 = a[1][2] * a[2][0] - a[1][0] * a[2][2]
     c02 = a[1][0] * a[2][1] - a[1][1] * a[2][0]
@@ -43,12 +35,27 @@ def solve3(a, r) -> tuple[Array, Array]:
     c12 = a[0][1] * a[2][0] - a[0][0] * a[2][1]
     c22 = a[0][0] * a[1][1] - a[0][1] * a[1][0]
     det = a[0][0] * c00 + a[0][1] * c01 + a[0][2] * c02
+    return [[c00, c01, c02], [c01, c11, c12], [c02, c12, c22]], det
+
+
+def relative_det(a, det) -> Array:
+    """det(a) / (trace(a)/3)^3: a scale-free conditioning measure (0 when singular)."""
     scale = (a[0][0] + a[1][1] + a[2][2]) / 3
-    rel_det = det / jnp.maximum(scale**3, jnp.finfo(det.dtype).tiny)
+    return det / jnp.maximum(scale**3, jnp.finfo(det.dtype).tiny)
+
+
+def solve3(a, r) -> tuple[Array, Array]:
+    """Solve the symmetric 3x3 system `a x = r` by cofactors.
+
+    `a` is indexable as `a[p][q]` (a `(3, 3)` array or nested lists of per-pixel scalars) and
+    `r` as `r[p]` (a `(3, ...)` array or a list of three arrays). Returns the `(3, ...)`
+    solution and `relative_det`.
+
+    Written with scalar products only: under `vmap`, a batched matrix product or a reduction
+    over a small axis becomes a slow batched op on CPU, while these fuse into one elementwise
+    loop over pixels.
+    """
+    adj, det = adjugate3(a)
     inv_det = 1 / jnp.where(det != 0, det, 1)
-    x = [
-        (c00 * r[0] + c01 * r[1] + c02 * r[2]) * inv_det,
-        (c01 * r[0] + c11 * r[1] + c12 * r[2]) * inv_det,
-        (c02 * r[0] + c12 * r[1] + c22 * r[2]) * inv_det,
-    ]
-    return jnp.stack(x), rel_det
+    x = [(adj[p][0] * r[0] + adj[p][1] * r[1] + adj[p][2] * r[2]) * inv_det for p in range(3)]
+    return jnp.stack(x), relative_det(a, det)

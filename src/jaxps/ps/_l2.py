@@ -19,7 +19,7 @@ import numpy as np
 from jaxtyping import Array, Float, Int
 
 from ..core._host import OLDER_EMITTERS, CpuTuned, cpu_top_level
-from ..core._linalg import REL_DET_MIN, normal_equations, solve3
+from ..core._linalg import REL_DET_MIN, adjugate3, normal_equations, relative_det, solve3
 from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status, first_status
 from ..core._store import call as stored_call
@@ -197,6 +197,25 @@ def _pixel_all_used(x, usable, inside, shared, thresholds):
     return _finish(solve, jnp.int32(len(x)), cases, inside)
 
 
+def _weighted_system(x, usable, lights, thresholds, all_finite):
+    """One pixel's weighted normal equations (arguments as `_pixel_weighted` takes them): the
+    grey samples `g`, the 0/1 weights `w`, the status cases in `first_status` order, the
+    number of samples used, $A = L^T W L$, $r = L^T W g$ and each colour channel's
+    $L^T W i_c$."""
+    dtype = x[0][0].dtype
+    x, g, used, cases = _samples(x, usable, thresholds, all_finite)
+    w = [u.astype(dtype) for u in used]
+    channels = [] if len(x[0]) == 1 else [[xk[c] for xk in x] for c in range(len(x[0]))]
+    a, (r, *r_channels) = normal_equations(w, lights, [g, *channels])
+    return g, w, cases, _count(used), a, r, r_channels
+
+
+def _misfit(g, w, lights, b):
+    """$\\sum_k w_k (g_k - l_k \\cdot b)^2$."""
+    return sum(wk * (gk - sum(lk[p] * b[p] for p in range(3))) ** 2
+               for gk, wk, lk in zip(g, w, lights))
+
+
 def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
     """Solve one pixel over its usable samples: $b = (L^T W L)^{-1} L^T W i$ by cofactors.
 
@@ -205,24 +224,53 @@ def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
     this one solve: solved again in each output's loop, it was slower at K=12 with 5% of the
     samples dropped (docs/speed.md).
     """
-    ks = range(len(x))
-    dtype = x[0][0].dtype
-    x, g, used, cases = _samples(x, usable, thresholds, all_finite)
-    w = [u.astype(dtype) for u in used]
-    channels = [] if len(x[0]) == 1 else [[x[k][c] for k in ks] for c in range(len(x[0]))]
-    a, (r, *r_channels) = normal_equations(w, lights, [g, *channels])
+    g, w, cases, n_used, a, r, r_channels = _weighted_system(x, usable, lights, thresholds,
+                                                             all_finite)
     b, rel_det = solve3(a, r)
     b = [b[p] for p in range(3)]
-    sq = sum(w[k] * (g[k] - sum(lights[k][p] * b[p] for p in range(3))) ** 2 for k in ks)
+    cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))
+    sq = _misfit(g, w, lights, b)
 
     def colour_albedo(n):
         nan = sum(n[p] * a[p][q] * n[q] for p in range(3) for q in range(3))
         return [safe_divide(sum(n[p] * r_c[p] for p in range(3)), nan) for r_c in r_channels]
 
-    cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))
     colour_albedo = None if len(x[0]) == 1 else colour_albedo
-    return _finish(lambda: (b, sq, colour_albedo), _count(used), cases, inside,
+    return _finish(lambda: (b, sq, colour_albedo), n_used, cases, inside,
                    backfacing_from_b=True)
+
+
+def _pixel_weighted_packed(x, usable, inside, lights, thresholds, all_finite=False):
+    """`_pixel_weighted`'s solve of one grey pixel, packed for `_unpack_weighted`: two
+    complex numbers, $b_x + i b_y$ and $b_z + i m$ with $m$ the squared misfit (or minus the
+    status code, where a case before the normal's own fired), and n_used.
+
+    XLA-CPU computes each output of the solve in a loop over the image of its own, and each
+    loop that needs $b$ solves the pixel's system again from all K samples. A complex output
+    carries two values out of one loop, so two loops solve it where `_pixel_weighted` took
+    five. The second divides by det itself instead of reusing the first's $1/\\det$: XLA
+    writes a divide that two loops share to memory, in one more loop over the samples.
+    """
+    g, w, cases, n_used, a, r, _ = _weighted_system(x, usable, lights, thresholds, all_finite)
+    adj, det = adjugate3(a)
+    cases.append((relative_det(a, det) < REL_DET_MIN, Status.DEGENERATE))
+    code = first_status([(~inside, Status.MASKED), *cases])
+    num = [adj[p][0] * r[0] + adj[p][1] * r[1] + adj[p][2] * r[2] for p in range(3)]
+    det = jnp.where(det != 0, det, 1)
+    inv_det = 1 / det
+    sq = _misfit([gk * det for gk in g], w, lights, num) / (det * det)  # b = num / det
+    misfit = jnp.where(code == Status.OK, sq, -code.astype(det.dtype))
+    return (jax.lax.complex(num[0] * inv_det, num[1] * inv_det),
+            jax.lax.complex(num[2] / det, misfit), n_used)
+
+
+def _unpack_weighted(bxy, bz_misfit, n_used):
+    """`_pixel_weighted`'s outputs from `_pixel_weighted_packed`'s."""
+    b = [jnp.real(bxy), jnp.imag(bxy), jnp.real(bz_misfit)]
+    misfit = jnp.imag(bz_misfit)
+    code = jnp.where(misfit < 0, -misfit, 0).astype(jnp.int32)
+    return _finish(lambda: (b, jnp.maximum(misfit, 0), None), n_used, [(code != 0, code)],
+                   code != Status.MASKED, backfacing_from_b=True)
 
 
 @jax.custom_jvp
@@ -311,22 +359,44 @@ def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True, ba
 
 
 def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, all_finite=False,
-                    batched=False):
+                    batched=False, packed=False):
     """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights
-    (`batched`: `(N, K, ...)` images as in `_planes`, with `(K, 3)` or `(N, K, 3)` lights)."""
-    per_capture = batched and lights.ndim == 3
-    k = lights.shape[1 if per_capture else 0]
-    per_pixel = lights.ndim == 4
-    if per_pixel:
-        lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
-        lt = [[(lights[i, ..., p].reshape(-1) if flat else lights[i, ..., p]) for p in range(3)]
-              for i in range(k)]
-    else:
-        lt = [[lights[..., i, p] for p in range(3)] for i in range(k)]
-    axis = None if sample_mask is None else 0
-    kernel = functools.partial(_pixel_weighted, all_finite=all_finite)
-    return _lift(kernel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched,
-                 per_capture)(*_planes(images, sample_mask, mask, flat, batched), lt, thresholds)
+    (`batched`: `(N, K, ...)` images as in `_planes`, with `(K, 3)` or `(N, K, 3)` lights).
+
+    `packed` (grey images): solve with `_pixel_weighted_packed` inside a `cond` whose two
+    branches are the same, then `_unpack_weighted`. XLA does not simplify across a `cond`,
+    so the two complex planes are written to memory as they are. Without one (and behind an
+    `optimization_barrier`, which XLA-CPU removes) it simplified `real(complex(x, y))` back
+    to `x` and solved the system again in every output's loop. At 1 MP with 5% of the
+    samples dropped the packed solve took 0.71x the time of the unpacked one at K=12, 0.81x
+    at K=8 and the same at K=4-5 (`benchmarks/bench_weighted_packed.py`). Only for a program
+    of its own (a branch taken on the host): under `vmap` a `cond` on a batched predicate
+    runs both branches."""
+    kernel = _pixel_weighted_packed if packed and images.ndim == 3 + batched else None
+
+    def solve(images, lights, mask, sample_mask, thresholds):
+        per_capture = batched and lights.ndim == 3
+        k = lights.shape[1 if per_capture else 0]
+        per_pixel = lights.ndim == 4
+        if per_pixel:
+            lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
+            lt = [[(lights[i, ..., p].reshape(-1) if flat else lights[i, ..., p])
+                   for p in range(3)] for i in range(k)]
+        else:
+            lt = [[lights[..., i, p] for p in range(3)] for i in range(k)]
+        axis = None if sample_mask is None else 0
+        pixel = functools.partial(kernel or _pixel_weighted, all_finite=all_finite)
+        return _lift(pixel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched,
+                     per_capture)(*_planes(images, sample_mask, mask, flat, batched), lt,
+                                  thresholds)
+
+    args = (images, lights, mask, sample_mask, thresholds)
+    if kernel is None:
+        return solve(*args)
+    # any predicate XLA cannot evaluate while compiling: both branches are the same solve
+    opaque = jnp.isnan(lights.reshape(-1)[0])
+    bxy, bz_misfit, n_used = jax.lax.cond(opaque, solve, solve, *args)
+    return _lift(_unpack_weighted, (0, 0, 0), flat, batched)(bxy, bz_misfit, n_used)
 
 
 def _stacked(out):
@@ -376,7 +446,8 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
                                        flat=False))
     elif lights.ndim == 2 and branch in ("weighted", "weighted_finite"):
         out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds,
-                                       flat=False, all_finite=branch == "weighted_finite"))
+                                       flat=False, all_finite=branch == "weighted_finite",
+                                       packed=True))
     elif lights.ndim == 2 and branch is None:
         # The flag pass costs one read of the images; it lets the branches take only the inputs
         # as operands (planes or results built outside a `cond` would be copied into it). Where
@@ -459,7 +530,8 @@ def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, 
                               _cast_shared(shared, images.dtype), flat=False, batched=True)
     else:
         res = _solve_weighted(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
-                              flat=False, all_finite=branch == "weighted_finite", batched=True)
+                              flat=False, all_finite=branch == "weighted_finite", batched=True,
+                              packed=True)
     normal, albedo, status, n_used, residual = _stacked(res)
     return normal.astype(dtype), albedo.astype(dtype), status, n_used, residual.astype(dtype)
 

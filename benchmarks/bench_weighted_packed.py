@@ -1,0 +1,122 @@
+"""L2's weighted solve, packed into two complex planes against the kernel before, interleaved.
+
+The weighted solve (some samples dropped) of a host-chosen L2 branch computes $b$, the misfit
+and the status codes with `_l2._pixel_weighted_packed`: two complex outputs carry four values
+out of one loop over the image each, inside a `cond` that XLA cannot see through, and
+`_l2._unpack_weighted` writes the five results from them. The kernel before
+(`_pixel_weighted`, `packed=False`) wrote each output from a loop of its own, and each of
+those loops solved the pixel's system again from all K samples.
+
+Both programs solve the same 1280x1024 synthetic face with 5% of the samples in the mask
+below a shadow threshold (grey, every sample finite: `all_finite`, as the flag pass finds),
+for K = 4, 5, 8 and 12. They are timed in alternating order in one process, so that the
+shared machine's slow spells fall on both; medians and minima of `--rounds` calls each. Also
+recorded: the largest difference between their results (status and n_used must be equal) and
+the loop fusions each program compiles to, counting those that read the whole stack of
+samples (a `cond`'s two identical branches are both compiled, so the packed program's count
+includes each of its fusions twice).
+
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_weighted_packed.py
+    -> benchmarks/results/weighted_packed.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import re
+import sys
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxps
+from jaxps.ps import _l2
+
+try:
+    from benchmarks._common import RESULTS, environment
+    from benchmarks.bench_core import ring_lights
+except ImportError:  # run as a script
+    import pathlib
+
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import RESULTS, environment
+    from benchmarks.bench_core import ring_lights
+
+H, W = 1024, 1280
+
+
+@functools.partial(jax.jit, static_argnames=("packed",))
+def _solve(images, lights, mask, thresholds, packed):
+    return _l2._stacked(_l2._solve_weighted(images, lights, mask, None, thresholds, flat=False,
+                                            all_finite=True, packed=packed))
+
+
+def _fusions(text: str, k: int) -> dict:
+    stack = f"f32[{k},{H},{W}]"
+    heads = [line for line in text.splitlines() if line.startswith("%fused_computation")]
+    return {"fusions": len(re.findall(r"= \S+ fusion\(", text)),
+            "fusions_reading_the_stack": sum(stack in line.split("->")[0] for line in heads)}
+
+
+def _row(k, surface, rounds):
+    lights = jaxps.synthetic.scanner_lights(20.0, k=k) if k <= 5 else ring_lights(k)
+    scene = jaxps.synthetic.render_scene(surface, lights)
+    images, mask = jax.device_put(scene.images), jax.device_put(scene.mask)
+    inside = np.asarray(scene.images)[:, np.asarray(scene.mask)]
+    shadow = float(np.percentile(inside, 5))
+    thresholds = tuple(jnp.float32(t) for t in (0.0, np.inf, shadow))
+    lights = jnp.asarray(lights, jnp.float32)
+    args = (images, lights, mask, thresholds)
+    variants = {"before": False, "packed": True}
+    out = {name: jax.block_until_ready(_solve(*args, packed=p)) for name, p in variants.items()}
+    times = {name: [] for name in variants}
+    for r in range(rounds):
+        for name, p in (variants.items() if r % 2 else reversed(variants.items())):
+            t = time.perf_counter()
+            jax.block_until_ready(_solve(*args, packed=p))
+            times[name].append(time.perf_counter() - t)
+    before, packed = out["before"], out["packed"]
+    row = {"K": k, "dropped_fraction": float(np.mean(inside < shadow)),
+           "status_equal": bool(np.array_equal(before[2], packed[2])),
+           "n_used_equal": bool(np.array_equal(before[3], packed[3])),
+           "max_abs_diff": {name: float(np.max(np.abs(np.asarray(a, np.float64)
+                                                      - np.asarray(b, np.float64))))
+                            for name, a, b in zip(("normals", "albedo", "residual"),
+                                                  (before[0], before[1], before[4]),
+                                                  (packed[0], packed[1], packed[4]))}}
+    for name, p in variants.items():
+        row[name] = {"run_s_median": float(np.median(times[name])),
+                     "run_s_min": float(np.min(times[name])),
+                     **_fusions(_solve.lower(*args, packed=p).compile().as_text(), k)}
+    row["median_ratio"] = row["packed"]["run_s_median"] / row["before"]["run_s_median"]
+    print(f"K={k:2d}: before {1e3 * row['before']['run_s_median']:6.2f} ms "
+          f"(min {1e3 * row['before']['run_s_min']:6.2f}), packed "
+          f"{1e3 * row['packed']['run_s_median']:6.2f} ms "
+          f"(min {1e3 * row['packed']['run_s_min']:6.2f}), ratio {row['median_ratio']:.3f}",
+          flush=True)
+    return row
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--rounds", type=int, default=60)
+    parser.add_argument("--quick", action="store_true", help="6 rounds (the runner's mode)")
+    parser.add_argument("--out", default=str(RESULTS / "weighted_packed.json"))
+    args = parser.parse_args()
+    if args.quick:
+        args.rounds = 6
+    surface = jaxps.synthetic.face_like(H, W)
+    rows = [_row(k, surface, args.rounds) for k in (4, 5, 8, 12)]
+    res = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
+                      "benchmarks/bench_weighted_packed.py", "shape": [H, W],
+           "rounds": args.rounds, "env": environment(), "rows": rows}
+    with open(args.out, "w") as f:
+        json.dump(res, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
