@@ -365,11 +365,12 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
 
     `packed` (grey images): solve with `_pixel_weighted_packed` inside a `cond` whose two
     branches are the same, then `_unpack_weighted`. XLA does not simplify across a `cond`,
-    so the two complex planes are written to memory as they are. Without one (and behind an
-    `optimization_barrier`, which XLA-CPU removes) it simplified `real(complex(x, y))` back
-    to `x` and solved the system again in every output's loop. At 1 MP with 5% of the
-    samples dropped the packed solve took 0.71x the time of the unpacked one at K=12, 0.81x
-    at K=8 and the same at K=4-5 (`benchmarks/bench_weighted_packed.py`). Only for a program
+    so the two complex planes are written to memory as they are. Without one, and with an
+    `optimization_barrier` in its place, it simplified `real(complex(x, y))` back to `x` and
+    solved the system again in every output's loop. At 1 MP with 5% of the
+    samples dropped the packed solve took 0.66-0.71x the time of the unpacked one at K=12,
+    0.81-0.93x at K=8 and 0.91-1.02x at K=4-5 (`benchmarks/bench_weighted_packed.py`, two
+    runs). Only for a program
     of its own (a branch taken on the host): under `vmap` a `cond` on a batched predicate
     runs both branches."""
     kernel = _pixel_weighted_packed if packed and images.ndim == 3 + batched else None
