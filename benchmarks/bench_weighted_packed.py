@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import functools
-import json
 import re
 import sys
 import time
@@ -37,13 +36,13 @@ import jaxps
 from jaxps.ps import _l2
 
 try:
-    from benchmarks._common import RESULTS, environment
+    from benchmarks._common import environment, write_json
     from benchmarks.bench_core import ring_lights
 except ImportError:  # run as a script
     import pathlib
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import RESULTS, environment
+    from benchmarks._common import environment, write_json
     from benchmarks.bench_core import ring_lights
 
 H, W = 1024, 1280
@@ -105,17 +104,15 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=60)
     parser.add_argument("--quick", action="store_true", help="6 rounds (the runner's mode)")
-    parser.add_argument("--out", default=str(RESULTS / "weighted_packed.json"))
     args = parser.parse_args()
     if args.quick:
         args.rounds = 6
     surface = jaxps.synthetic.face_like(H, W)
     rows = [_row(k, surface, args.rounds) for k in (4, 5, 8, 12)]
-    res = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
-                      "benchmarks/bench_weighted_packed.py", "shape": [H, W],
-           "rounds": args.rounds, "env": environment(), "rows": rows}
-    with open(args.out, "w") as f:
-        json.dump(res, f, indent=1)
+    write_json("weighted_packed", {
+        "command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
+                   "benchmarks/bench_weighted_packed.py",
+        "shape": [H, W], "rounds": args.rounds, "env": environment(), "rows": rows})
 
 
 if __name__ == "__main__":
