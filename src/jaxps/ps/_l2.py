@@ -379,14 +379,14 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
         per_capture = batched and lights.ndim == 3
         k = lights.shape[1 if per_capture else 0]
         per_pixel = lights.ndim == 4
+        pixel = functools.partial(kernel or _pixel_weighted, all_finite=all_finite)
         if per_pixel:
-            lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
             lt = [[(lights[i, ..., p].reshape(-1) if flat else lights[i, ..., p])
                    for p in range(3)] for i in range(k)]
+            pixel = functools.partial(_unit_lights, pixel)
         else:
             lt = [[lights[..., i, p] for p in range(3)] for i in range(k)]
         axis = None if sample_mask is None else 0
-        pixel = functools.partial(kernel or _pixel_weighted, all_finite=all_finite)
         return _lift(pixel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched,
                      per_capture)(*_planes(images, sample_mask, mask, flat, batched), lt,
                                   thresholds)
@@ -398,6 +398,14 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
     opaque = jnp.isnan(lights.reshape(-1)[0])
     bxy, bz_misfit, n_used = jax.lax.cond(opaque, solve, solve, *args)
     return _lift(_unpack_weighted, (0, 0, 0), flat, batched)(bxy, bz_misfit, n_used)
+
+
+def _unit_lights(pixel, x, usable, inside, lights, thresholds):
+    """`pixel` with this pixel's own light vectors normalised here, in its loops. Normalised
+    as a `(K, H, W, 3)` array first, the weighted solve at 1 MP, K=5 took about three times
+    as long (`benchmarks/bench_weighted_packed.py --per-pixel`)."""
+    unit = [[v * jax.lax.rsqrt(sum(c * c for c in lk)) for v in lk] for lk in lights]
+    return pixel(x, usable, inside, unit, thresholds)
 
 
 def _stacked(out):
@@ -422,7 +430,9 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     solve already chosen on the host with `l2_branch`: `"all_used"` or `"weighted"`, or
     `"weighted_finite"` when it has also found every sample inside the mask finite
     (`photometric_stereo` does so for a top-level call on the CPU, so that only the branch it
-    runs is traced and compiled).
+    runs is traced and compiled). Per-pixel lights always take the weighted solve: None
+    (traced), or `"weighted"`/`"weighted_finite"` from the host, which packs it
+    (`_solve_weighted`).
 
     The kernels take one plane per sample and channel (`(H*W,)` each in the `cond`'s
     branches, `(H, W)` in a host-chosen solve: see docs/photometric_stereo.md) rather than
@@ -461,8 +471,14 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
             lambda *a: _stacked(_solve_weighted(*a)),
             lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared)),
             images, lights, mask, sample_mask, thresholds)
-    else:
+    elif branch in ("weighted", "weighted_finite"):  # per-pixel lights, chosen on the host
+        out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds,
+                                       flat=False, all_finite=branch == "weighted_finite",
+                                       packed=True))
+    elif branch is None:
         out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds))
+    else:
+        raise ValueError(f"per-pixel lights take the weighted solve, not branch={branch!r}")
     normal, albedo, status, n_used, residual = out
     return PSResult(normal.reshape(h, w, 3), albedo.reshape(h, w, *images.shape[3:]),
                     status.reshape(h, w), n_used.reshape(h, w), residual.reshape(h, w))

@@ -121,9 +121,10 @@ def photometric_stereo(
     **Returns:** a `PSResult` (normals `(H, W, 3)`, albedo `(H, W)` or `(H, W, C)`, status,
     n_used, residual), in the floating dtype of `images`.
 
-    For `"l2"` with `(K, 3)` lights, a call on the CPU outside any `jit`/`grad`/`vmap` first
+    For `"l2"`, a call on the CPU outside any `jit`/`grad`/`vmap` first
     waits for one read of its flags (does any pixel drop a sample? is any sample non-finite?)
-    and then compiles and runs only the solve it needs; the solve itself is dispatched asynchronously as usual. Inside a trace the
+    and then compiles and runs only the solve it needs (per-pixel lights always take the
+    weighted solve); the solve itself is dispatched asynchronously as usual. Inside a trace the
     choice is a `lax.cond` in the program (docs/photometric_stereo.md, "How it is built").
     For `"irls"` and `"sbl"`, such a call on a multi-core CPU solves bands of rows on threads
     of their own (one per core, at least 16384 pixels each) and returns once all are done;
@@ -178,6 +179,16 @@ def photometric_stereo(
                                  for m in (mask, sample_mask))
             branch = l2_branch(images, mask, sample_mask, thresholds)
             options = {**options, "branch": branch}
+    elif method == "l2" and len(lights_shape) == 4 and cpu_top_level(images, lights, mask,
+                                                                     sample_mask):
+        # Per-pixel lights: always the weighted solve, packed as a host-chosen branch is
+        # (`_l2._solve_weighted`); the flag pass says whether it must zero non-finite samples
+        images, lights = to_device(images), to_device(lights)
+        mask, sample_mask = (None if m is None else to_device(m, bool)
+                             for m in (mask, sample_mask))
+        flags = l2_branch(images, mask, sample_mask, thresholds)
+        branch = "weighted" if flags == "weighted" else "weighted_finite"
+        options = {**options, "branch": branch}
     static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
     try:
         hash(static)
