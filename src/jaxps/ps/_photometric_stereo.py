@@ -169,25 +169,20 @@ def photometric_stereo(
     branch = None
     if method == "l2" and isinstance(lights, np.ndarray) and lights.ndim == 2:
         dynamic["shared"] = host_constants(lights)  # no LAPACK call in the jitted solve
-        if cpu_top_level(images, mask, sample_mask):
-            # L2's branch taken here, as the batch does: only the solve that runs is traced
-            # and compiled (the `cond` compiled both: 0.5-0.8 s at 1 MP, K=5, in
-            # `benchmarks/bench_l2_programs.py`), for one flag read back from the CPU. The
-            # stacks go to the device once, not once a call.
-            images = to_device(images)
-            mask, sample_mask = (None if m is None else to_device(m, bool)
-                                 for m in (mask, sample_mask))
-            branch = l2_branch(images, mask, sample_mask, thresholds)
-            options = {**options, "branch": branch}
-    elif method == "l2" and len(lights_shape) == 4 and cpu_top_level(images, lights, mask,
-                                                                     sample_mask):
-        # Per-pixel lights: always the weighted solve, packed as a host-chosen branch is
-        # (`_l2._solve_weighted`); the flag pass says whether it must zero non-finite samples
-        images, lights = to_device(images), to_device(lights)
+    per_pixel = len(lights_shape) == 4
+    if (method == "l2" and ("shared" in dynamic or per_pixel)
+            and cpu_top_level(images, lights, mask, sample_mask)):
+        # L2's branch taken here, as the batch does: only the solve that runs is traced
+        # and compiled (the `cond` compiled both: 0.5-0.8 s at 1 MP, K=5, in
+        # `benchmarks/bench_l2_programs.py`), for one flag read back from the CPU. The
+        # stacks go to the device once, not once a call.
+        images = to_device(images)
         mask, sample_mask = (None if m is None else to_device(m, bool)
                              for m in (mask, sample_mask))
-        flags = l2_branch(images, mask, sample_mask, thresholds)
-        branch = "weighted" if flags == "weighted" else "weighted_finite"
+        branch = l2_branch(images, mask, sample_mask, thresholds)
+        if per_pixel:  # always the weighted solve; the flags say whether to zero samples
+            lights = to_device(lights)
+            branch = "weighted" if branch == "weighted" else "weighted_finite"
         options = {**options, "branch": branch}
     static = tuple(sorted((k, v) for k, v in options.items() if k not in dynamic))
     try:
