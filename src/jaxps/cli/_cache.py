@@ -26,8 +26,8 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> pathlib.P
     Call before the first jitted call of the process; every compiled program is then kept,
     however quick its compile. Also usable from Python scripts that run many short jobs.
     jaxps's hot programs (the L2 solve and its flag pass, FC and DCT integration, the
-    parametric BRDF fit) are also kept whole in `path / "executables"`, so that a new process loads them without tracing
-    them again (`core._store`).
+    parametric BRDF fit) are also kept whole in `path / "executables"`, so that a new process
+    loads them without tracing them again (`core._store`).
 
     **Returns:** the cache folder, or None when disabled (`JAXPS_CACHE_DIR=off`) or when JAX
     already has a cache folder from its own settings.

@@ -367,12 +367,11 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
     branches are the same, then `_unpack_weighted`. XLA does not simplify across a `cond`,
     so the two complex planes are written to memory as they are. Without one, and with an
     `optimization_barrier` in its place, it simplified `real(complex(x, y))` back to `x` and
-    solved the system again in every output's loop. At 1 MP with 5% of the
-    samples dropped the packed solve took 0.66-0.71x the time of the unpacked one at K=12,
-    0.81-0.93x at K=8 and 0.91-1.02x at K=4-5 (`benchmarks/bench_weighted_packed.py`, two
-    runs). Only for a program
-    of its own (a branch taken on the host): under `vmap` a `cond` on a batched predicate
-    runs both branches."""
+    solved the system again in every output's loop. At 1 MP with 5% of the samples dropped
+    the packed solve took 0.66-0.71x the time of the unpacked one at K=12, 0.81-0.93x at K=8
+    and 0.91-1.02x at K=4-5 (`benchmarks/bench_weighted_packed.py`, two runs). Only for a
+    program of its own (a branch taken on the host): under `vmap` a `cond` on a batched
+    predicate runs both branches."""
     kernel = _pixel_weighted_packed if packed and images.ndim == 3 + batched else None
 
     def solve(images, lights, mask, sample_mask, thresholds):
@@ -452,14 +451,16 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     if branch not in (None, "all_used", "weighted", "weighted_finite"):
         raise ValueError("branch must be None, 'all_used', 'weighted' or 'weighted_finite', "
                          f"got {branch!r}")
-    if lights.ndim == 2 and branch == "all_used":
+    if lights.ndim == 4 and branch == "all_used":
+        raise ValueError("per-pixel lights take the weighted solve, not branch='all_used'")
+    if branch == "all_used":
         out = _stacked(_solve_all_used(images, mask, sample_mask, thresholds, shared,
                                        flat=False))
-    elif lights.ndim == 2 and branch in ("weighted", "weighted_finite"):
+    elif branch in ("weighted", "weighted_finite"):  # shared or per-pixel lights
         out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds,
                                        flat=False, all_finite=branch == "weighted_finite",
                                        packed=True))
-    elif lights.ndim == 2 and branch is None:
+    elif lights.ndim == 2:
         # The flag pass costs one read of the images; it lets the branches take only the inputs
         # as operands (planes or results built outside a `cond` would be copied into it). Where
         # no sample is dropped the two solves agree to rounding (the tests hold both to numpy
@@ -471,14 +472,8 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
             lambda *a: _stacked(_solve_weighted(*a)),
             lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared)),
             images, lights, mask, sample_mask, thresholds)
-    elif branch in ("weighted", "weighted_finite"):  # per-pixel lights, chosen on the host
-        out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds,
-                                       flat=False, all_finite=branch == "weighted_finite",
-                                       packed=True))
-    elif branch is None:
-        out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds))
     else:
-        raise ValueError(f"per-pixel lights take the weighted solve, not branch={branch!r}")
+        out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds))
     normal, albedo, status, n_used, residual = out
     return PSResult(normal.reshape(h, w, 3), albedo.reshape(h, w, *images.shape[3:]),
                     status.reshape(h, w), n_used.reshape(h, w), residual.reshape(h, w))
