@@ -69,19 +69,18 @@ def _samples(x, usable, thresholds, all_finite=False):
 
     `all_finite`: the caller has checked that every sample is finite (`l2_branch`), so
     nothing is zeroed and `INVALID` cannot occur. XLA-CPU wrote each zeroed sample to memory
-    as its own plane, read again by every output's pass (and the "used" flags as K bool
-    planes, now one bit plane). At 1 MP with 5% of the samples dropped the weighted solve took
-    21.6-25.9 against 50.8-53.2 ms at K=12 and 11.4-15.9 against 24.9-26.6 ms at K=5, results
-    bit-identical (`benchmarks/bench_l2_programs.py`, four runs)."""
+    as its own plane, read again by every output's pass. At 1 MP with 5% of the samples
+    dropped the weighted solve took 21.6-25.9 against 50.8-53.2 ms at K=12 and 11.4-15.9
+    against 24.9-26.6 ms at K=5, results bit-identical (`benchmarks/bench_l2_programs.py`,
+    four runs). (The "used" flags were once packed into an int32 bit plane here; with the
+    packed solve that was no faster for grey stacks and made colour ones slower:
+    `benchmarks/ab_l2.py`.)"""
     dark, saturation, shadow = thresholds
     ks = range(len(x))
     g = [_grey(xk) for xk in x]
     if all_finite:
         unsat = [usable[k] & ~_any([v >= saturation for v in x[k]]) for k in ks]
         used = [unsat[k] & (g[k] >= shadow) for k in ks]
-        if len(ks) <= 31:  # one int32 plane of "used" bits, not K bool planes in memory
-            bits = sum(u.astype(jnp.int32) << k for k, u in zip(ks, used))
-            used = [(bits >> k) & 1 == 1 for k in ks]
         cases = [
             (functools.reduce(jnp.maximum, g) <= dark, Status.DARK),
             (_count(unsat) < 3, Status.SATURATED),

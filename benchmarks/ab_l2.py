@@ -1,0 +1,120 @@
+"""L2's weighted solve in this tree against the same solve at an earlier revision, interleaved.
+
+Runs of `bench_core.py` one after another moved by up to 2x on this project's shared
+machine, more than most kernel changes are worth. This loads `src/jaxps/ps/_l2.py` as it was
+at `--before` (`git show`) next to the current one, in one process (the old module imports
+the current tree's other modules), and times the same programs of both in alternating order,
+so that a slow spell falls on both. At 1280x1024 with 5% of the samples in the mask below a
+shadow threshold (every sample finite), for K = 5 and 12:
+
+- `host, grey`: the host-chosen solve, `branch="weighted_finite"` (the packed solve), what a
+  top-level CPU call runs;
+- `traced`: `branch=None`, the flag pass and `cond` of a call inside `jit` or `vmap`;
+- `host, colour`: three channels, `branch="weighted_finite"` (the unpacked solve).
+
+Also recorded: whether status and n_used are equal and the largest normal difference.
+
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/ab_l2.py --before REV [--name NAME]
+    -> benchmarks/results/NAME.json (default ab_l2.json)
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib.util
+import pathlib
+import statistics
+import subprocess
+import sys
+import tempfile
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import jaxps
+from jaxps.ps import _l2
+
+try:
+    from benchmarks._common import ROOT, environment, interleaved, write_json
+    from benchmarks.bench_core import ring_lights
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import ROOT, environment, interleaved, write_json
+    from benchmarks.bench_core import ring_lights
+
+H, W = 1024, 1280
+
+
+def module_at(rev: str, folder: pathlib.Path):
+    """`jaxps.ps._l2` as it was at git revision `rev`, as the module `jaxps.ps._l2_before`
+    (its source written to `folder`)."""
+    path = folder / "_l2_before.py"
+    path.write_text(subprocess.run(["git", "show", f"{rev}:src/jaxps/ps/_l2.py"], cwd=ROOT,
+                                   check=True, capture_output=True, text=True).stdout)
+    spec = importlib.util.spec_from_file_location("jaxps.ps._l2_before", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def programs(module, k):
+    """The three programs of `module` on one synthetic capture with K lights."""
+    lights = ring_lights(k) if k >= 8 else jaxps.synthetic.scanner_lights(20.0, k=k)
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(H, W), lights)
+    grey = np.asarray(scene.images)
+    mask = np.asarray(scene.mask)
+    threshold = float(np.percentile(grey[:, mask], 5))
+    thresholds = tuple(jnp.asarray(t, jnp.float32) for t in (0.0, jnp.inf, threshold))
+    shared = _l2.host_constants(np.asarray(lights, np.float64))
+    lt, msk = jnp.asarray(lights, jnp.float32), jax.device_put(mask)
+    images = jax.device_put(grey)
+    colour = jax.device_put(np.stack([grey, 0.8 * grey, 0.6 * grey], -1))
+    return {
+        "host, grey": lambda: module.ps_l2(images, lt, msk, None, thresholds, shared,
+                                           branch="weighted_finite"),
+        "traced": lambda: module.ps_l2(images, lt, msk, None, thresholds, shared),
+        "host, colour": lambda: module.ps_l2(colour, lt, msk, None, thresholds, shared,
+                                             branch="weighted_finite"),
+    }
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--before", required=True, help="git revision to compare with")
+    parser.add_argument("--rounds", type=int, default=25)
+    parser.add_argument("--name", default="ab_l2", help="results/NAME.json")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as folder:
+        before = module_at(args.before, pathlib.Path(folder))
+    rows = []
+    for k in (5, 12):
+        now, then = programs(_l2, k), programs(before, k)
+        cases = {**{("now", n): f for n, f in now.items()},
+                 **{("before", n): f for n, f in then.items()}}
+        _, seconds = interleaved(cases, args.rounds)
+        for name in now:
+            a, b = now[name](), then[name]()
+            same = all(np.array_equal(np.asarray(getattr(a, f)), np.asarray(getattr(b, f)))
+                       for f in ("status", "n_used"))
+            t_now, t_before = (statistics.median(seconds[(v, name)]) for v in ("now", "before"))
+            rows.append({"K": k, "program": name, "now_ms": 1e3 * t_now,
+                         "before_ms": 1e3 * t_before, "now_over_before": t_now / t_before,
+                         "status_and_n_used_equal": same,
+                         "max_normal_difference": float(np.abs(np.asarray(a.normals)
+                                                               - np.asarray(b.normals)).max())})
+            r = rows[-1]
+            print(f"K={k:2d} {name:13s} now {r['now_ms']:7.2f} ms  before {r['before_ms']:7.2f} "
+                  f"ms  {r['now_over_before']:.3f}x  equal {same}  "
+                  f"normals {r['max_normal_difference']:.1e}")
+    path = write_json(args.name, {
+        "command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/ab_l2.py "
+                   + " ".join(sys.argv[1:] if argv is None else argv),
+        "environment": environment(), "before": args.before, "rounds": args.rounds,
+        "shape": [H, W], "rows": rows})
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
