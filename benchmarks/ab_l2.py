@@ -4,7 +4,8 @@ Runs of `bench_core.py` one after another moved by up to 2x on this project's sh
 machine, more than most kernel changes are worth. This loads `src/jaxps/ps/_l2.py` as it was
 at `--before` (`git show`) next to the current one, in one process (the old module imports
 the current tree's other modules), and times the same programs of both in alternating order,
-so that a slow spell falls on both. At 1280x1024 with 5% of the samples in the mask below a
+so that a slow spell falls on both (each pair of programs alone, as the other program's
+memory left behind shifted a program's time by up to 10%). At 1280x1024 with 5% of the samples in the mask below a
 shadow threshold (every sample finite), for K = 5 and 12:
 
 - `host, grey`: the host-chosen solve, `branch="weighted_finite"` (the packed solve), what a
@@ -91,14 +92,13 @@ def main(argv=None):
     rows = []
     for k in (5, 12):
         now, then = programs(_l2, k), programs(before, k)
-        cases = {**{("now", n): f for n, f in now.items()},
-                 **{("before", n): f for n, f in then.items()}}
-        _, seconds = interleaved(cases, args.rounds)
         for name in now:
+            # each pair on its own, so that both programs follow the other one alike
+            _, seconds = interleaved({"now": now[name], "before": then[name]}, args.rounds)
             a, b = now[name](), then[name]()
             same = all(np.array_equal(np.asarray(getattr(a, f)), np.asarray(getattr(b, f)))
                        for f in ("status", "n_used"))
-            t_now, t_before = (statistics.median(seconds[(v, name)]) for v in ("now", "before"))
+            t_now, t_before = (statistics.median(seconds[v]) for v in ("now", "before"))
             rows.append({"K": k, "program": name, "now_ms": 1e3 * t_now,
                          "before_ms": 1e3 * t_before, "now_over_before": t_now / t_before,
                          "status_and_n_used_equal": same,
