@@ -85,6 +85,35 @@ def test_colour_equals_grey_when_channels_equal():
     np.testing.assert_array_equal(colour.status, grey.status)
 
 
+@pytest.mark.parametrize("traced", [False, True], ids=["host_packed", "traced"])
+def test_colour_with_dropped_samples_equals_numpy_per_channel(traced):
+    # The weighted colour solve (packed on the host, unpacked in a trace): the normal from the
+    # channel mean over the used samples, each channel's albedo the least-squares scale of
+    # its samples against l.n over those samples.
+    s = face_scene(40)
+    rng = np.random.default_rng(4)
+    tint = rng.uniform(0.3, 1.0, (1, *s.mask.shape, 3)).astype(np.float32)
+    images = np.asarray(s.images)[..., None] * tint
+    images *= rng.uniform(0.9, 1.1, images.shape).astype(np.float32)  # channels differ
+    images[1, :12] = 1.0  # saturated: every channel of these samples is dropped
+    options = {"mask": np.asarray(s.mask), "shadow_threshold": 0.02, "saturation": 1.0}
+    if traced:
+        res = jax.jit(lambda x: jaxps.photometric_stereo(x, s.lights, **options))(images)
+    else:
+        res = jaxps.photometric_stereo(images, s.lights, **options)
+    grey = images.mean(-1)
+    used = (images < 1.0).all(-1) & (grey >= 0.02)
+    n_ref, _ = numpy_reference(grey, s.lights, used)
+    shading = np.einsum("kp,hwp->khw", np.asarray(s.lights, np.float64), n_ref) * used
+    norm = np.maximum((shading**2).sum(0), 1e-12)[..., None]  # 0 where no sample is used
+    rho_ref = np.einsum("khw,khwc->hwc", shading, images.astype(np.float64)) / norm
+    ok = np.asarray(res.status) == Status.OK
+    assert ok.sum() > 0.9 * np.asarray(s.mask).sum()
+    np.testing.assert_array_equal(np.asarray(res.n_used)[ok], used.sum(0)[ok])
+    np.testing.assert_allclose(np.asarray(res.normals)[ok], n_ref[ok], atol=2e-5)
+    np.testing.assert_allclose(np.asarray(res.albedo)[ok], rho_ref[ok], rtol=1e-4, atol=1e-6)
+
+
 def test_colour_albedo_scales_per_channel():
     s = face_scene(48)
     tint = jnp.array([1.0, 0.6, 0.3], jnp.float32)

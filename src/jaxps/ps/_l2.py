@@ -240,17 +240,24 @@ def _pixel_weighted(x, usable, inside, lights, thresholds, all_finite=False):
 
 
 def _pixel_weighted_packed(x, usable, inside, lights, thresholds, all_finite=False):
-    """`_pixel_weighted`'s solve of one grey pixel, packed for `_unpack_weighted`: two
-    complex numbers, $b_x + i b_y$ and $b_z + i m$ with $m$ the squared misfit (or minus the
-    status code, where a case before the normal's own fired), and n_used.
+    """`_pixel_weighted`'s solve of one pixel, packed for `_unpack_weighted`: complex numbers
+    $b_x + i b_y$ and $b_z + i m$, with $m$ the squared misfit (or minus the status code,
+    where a case before the normal's own fired), then for C > 1 channels $f_0 + i f_1$, ...
+    (see below), and n_used.
 
     XLA-CPU computes each output of the solve in a loop over the image of its own, and each
     loop that needs $b$ solves the pixel's system again from all K samples. A complex output
     carries two values out of one loop, so two loops solve it where `_pixel_weighted` took
     five. The second divides by det itself instead of reusing the first's $1/\\det$: XLA
     writes a divide that two loops share to memory, in one more loop over the samples.
+
+    Colour: channel c's least-squares albedo along $n$ is $n \\cdot r_c / n^T A n$, which is
+    $|b| f_c$ with $f_c = b \\cdot r_c / b \\cdot r$ (as $A b = r$). The grey samples are the
+    channel mean, so the $f_c$ sum to C: the first C-1 are packed in pairs, and the last is
+    C minus their sum.
     """
-    g, w, cases, n_used, a, r, _ = _weighted_system(x, usable, lights, thresholds, all_finite)
+    g, w, cases, n_used, a, r, r_channels = _weighted_system(x, usable, lights, thresholds,
+                                                             all_finite)
     adj, det = adjugate3(a)
     cases.append((relative_det(a, det) < REL_DET_MIN, Status.DEGENERATE))
     code = first_status([(~inside, Status.MASKED), *cases])
@@ -259,17 +266,32 @@ def _pixel_weighted_packed(x, usable, inside, lights, thresholds, all_finite=Fal
     inv_det = 1 / det
     sq = _misfit([gk * det for gk in g], w, lights, num) / (det * det)  # b = num / det
     misfit = jnp.where(code == Status.OK, sq, -code.astype(det.dtype))
-    return (jax.lax.complex(num[0] * inv_det, num[1] * inv_det),
-            jax.lax.complex(num[2] / det, misfit), n_used)
+    planes = [jax.lax.complex(num[0] * inv_det, num[1] * inv_det),
+              jax.lax.complex(num[2] / det, misfit)]
+    if r_channels:
+        b = [v * inv_det for v in num]
+        along_b = [b[0] * v[0] + b[1] * v[1] + b[2] * v[2] for v in (r, *r_channels[:-1])]
+        f = [safe_divide(v, along_b[0]) for v in along_b[1:]]
+        f += [jnp.zeros_like(det)] * (len(f) % 2)
+        planes += [jax.lax.complex(f[i], f[i + 1]) for i in range(0, len(f), 2)]
+    return *planes, n_used
 
 
-def _unpack_weighted(bxy, bz_misfit, n_used):
-    """`_pixel_weighted`'s outputs from `_pixel_weighted_packed`'s."""
+def _unpack_weighted(bxy, bz_misfit, *rest, channels=1):
+    """`_pixel_weighted`'s outputs from `_pixel_weighted_packed`'s (`rest`: the colour
+    planes, then n_used)."""
+    *colour, n_used = rest
     b = [jnp.real(bxy), jnp.imag(bxy), jnp.real(bz_misfit)]
     misfit = jnp.imag(bz_misfit)
     code = jnp.where(misfit < 0, -misfit, 0).astype(jnp.int32)
-    return _finish(lambda: (b, jnp.maximum(misfit, 0), None), n_used, [(code != 0, code)],
-                   code != Status.MASKED, backfacing_from_b=True)
+    colour_albedo = None
+    if channels > 1:
+        f = [v for plane in colour for v in (jnp.real(plane), jnp.imag(plane))][:channels - 1]
+        f.append(channels - sum(f))
+        rho = safe_sqrt(b[0] ** 2 + b[1] ** 2 + b[2] ** 2)
+        colour_albedo = lambda n: [rho * fc for fc in f]
+    return _finish(lambda: (b, jnp.maximum(misfit, 0), colour_albedo), n_used,
+                   [(code != 0, code)], code != Status.MASKED, backfacing_from_b=True)
 
 
 @jax.custom_jvp
@@ -362,16 +384,18 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
     """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights
     (`batched`: `(N, K, ...)` images as in `_planes`, with `(K, 3)` or `(N, K, 3)` lights).
 
-    `packed` (grey images): solve with `_pixel_weighted_packed` inside a `cond` whose two
-    branches are the same, then `_unpack_weighted`. XLA does not simplify across a `cond`,
-    so the two complex planes are written to memory as they are. Without one, and with an
+    `packed`: solve with `_pixel_weighted_packed` inside a `cond` whose two branches are
+    the same, then `_unpack_weighted`. XLA does not simplify across a `cond`, so the complex
+    planes are written to memory as they are. Without one, and with an
     `optimization_barrier` in its place, it simplified `real(complex(x, y))` back to `x` and
     solved the system again in every output's loop. At 1 MP with 5% of the samples dropped
     the packed solve took 0.66-0.71x the time of the unpacked one at K=12, 0.81-0.93x at K=8
-    and 0.91-1.02x at K=4-5 (`benchmarks/bench_weighted_packed.py`, two runs). Only for a
+    and 0.91-1.02x at K=4-5 (`benchmarks/bench_weighted_packed.py`, two runs); for three
+    colour channels 0.58-0.64x at K=5 and 12 (`benchmarks/ab_l2.py`). Only for a
     program of its own (a branch taken on the host): under `vmap` a `cond` on a batched
     predicate runs both branches."""
-    kernel = _pixel_weighted_packed if packed and images.ndim == 3 + batched else None
+    kernel = _pixel_weighted_packed if packed else None
+    channels = 1 if images.ndim == 3 + batched else images.shape[-1]
 
     def solve(images, lights, mask, sample_mask, thresholds):
         per_capture = batched and lights.ndim == 3
@@ -394,8 +418,9 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
         return solve(*args)
     # any predicate XLA cannot evaluate while compiling: both branches are the same solve
     opaque = jnp.isnan(lights.reshape(-1)[0])
-    bxy, bz_misfit, n_used = jax.lax.cond(opaque, solve, solve, *args)
-    return _lift(_unpack_weighted, (0, 0, 0), flat, batched)(bxy, bz_misfit, n_used)
+    packed = jax.lax.cond(opaque, solve, solve, *args)
+    unpack = functools.partial(_unpack_weighted, channels=channels)
+    return _lift(unpack, (0,) * len(packed), flat, batched)(*packed)
 
 
 def _unit_lights(pixel, x, usable, inside, lights, thresholds):
