@@ -48,12 +48,12 @@ H, W = 1024, 1280
 
 
 def module_at(rev: str, folder: pathlib.Path):
-    """`jaxps.ps._l2` as it was at git revision `rev`, as the module `jaxps.ps._l2_before`
-    (its source written to `folder`)."""
+    """`jaxps.ps._l2` as it was at git revision `rev`: a module named `_l2_before` in the
+    same package (its source written to `folder`)."""
     path = folder / "_l2_before.py"
     path.write_text(subprocess.run(["git", "show", f"{rev}:src/jaxps/ps/_l2.py"], cwd=ROOT,
                                    check=True, capture_output=True, text=True).stdout)
-    spec = importlib.util.spec_from_file_location("jaxps.ps._l2_before", path)
+    spec = importlib.util.spec_from_file_location(f"{_l2.__package__}._l2_before", path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
