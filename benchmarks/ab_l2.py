@@ -1,17 +1,20 @@
-"""L2's weighted solve in this tree against the same solve at an earlier revision, interleaved.
+"""L2's solves in this tree against the same solves at an earlier revision, interleaved.
 
 Runs of `bench_core.py` one after another moved by up to 2x on this project's shared
 machine, more than most kernel changes are worth. This loads `src/jaxps/ps/_l2.py` as it was
 at `--before` (`git show`) next to the current one, in one process (the old module imports
 the current tree's other modules), and times the same programs of both in alternating order,
 so that a slow spell falls on both (each pair of programs alone, as the other program's
-memory left behind shifted a program's time by up to 10%). At 1280x1024 with 5% of the samples in the mask below a
-shadow threshold (every sample finite), for K = 5 and 12:
+memory left behind shifted a program's time by up to 10%). At 1280x1024 with 5% of the
+samples in the mask below a shadow threshold (every sample finite), for K = 5 and 12:
 
 - `host, grey`: the host-chosen solve, `branch="weighted_finite"` (the packed solve), what a
   top-level CPU call runs;
-- `traced`: `branch=None`, the flag pass and `cond` of a call inside `jit` or `vmap`;
-- `host, colour`: three channels, `branch="weighted_finite"` (the unpacked solve).
+- `traced`: `branch=None`, the flag pass and `cond` of a call inside `jit`;
+- `host, colour`: three channels, `branch="weighted_finite"`;
+- `traced, clean`: `branch=None` with every sample used (no shadow threshold);
+- `vmap x4` and `vmap x4, clean`: `branch=None` under `jax.vmap` over four scaled copies of
+  the capture, where the `cond` becomes a select and both branches run.
 
 Also recorded: whether status and n_used are equal and the largest normal difference.
 
@@ -60,8 +63,9 @@ def module_at(rev: str, folder: pathlib.Path):
     return module
 
 
-def programs(module, k):
-    """The three programs of `module` on one synthetic capture with K lights."""
+def programs(module, k, captures=4):
+    """The programs of `module` on one synthetic capture with K lights (and `captures`
+    scaled copies of it for `jax.vmap`)."""
     lights = ring_lights(k) if k >= 8 else jaxps.synthetic.scanner_lights(20.0, k=k)
     scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(H, W), lights)
     grey = np.asarray(scene.images)
@@ -72,12 +76,22 @@ def programs(module, k):
     lt, msk = jnp.asarray(lights, jnp.float32), jax.device_put(mask)
     images = jax.device_put(grey)
     colour = jax.device_put(np.stack([grey, 0.8 * grey, 0.6 * grey], -1))
+    stack = jax.device_put(np.stack([grey * s for s in np.linspace(0.9, 1.1, captures)]))
+    clean = thresholds[:2] + (jnp.float32(-jnp.inf),)  # every sample used
+
+    def vmapped(ths):
+        return jax.jit(jax.vmap(lambda x: module.ps_l2(x, lt, msk, None, ths, shared)))
+
+    over_dropped, over_clean = vmapped(thresholds), vmapped(clean)
     return {
         "host, grey": lambda: module.ps_l2(images, lt, msk, None, thresholds, shared,
                                            branch="weighted_finite"),
         "traced": lambda: module.ps_l2(images, lt, msk, None, thresholds, shared),
         "host, colour": lambda: module.ps_l2(colour, lt, msk, None, thresholds, shared,
                                              branch="weighted_finite"),
+        "traced, clean": lambda: module.ps_l2(images, lt, msk, None, clean, shared),
+        f"vmap x{captures}": lambda: over_dropped(stack),
+        f"vmap x{captures}, clean": lambda: over_clean(stack),
     }
 
 
