@@ -491,11 +491,11 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
         # lstsq), so the weighted one replaces the fast one whole rather than pixel by pixel:
         # a per-pixel merge made XLA-CPU fuse the weighted solve into every output.
         needs = _flags(images, mask, sample_mask, thresholds)
-        out = _stacked(jax.lax.cond(
+        out = jax.lax.cond(
             jnp.any(needs & 1 == 1),
-            _solve_weighted,
-            lambda im, lt, *a: _solve_all_used(im, *a, shared),
-            images, lights, mask, sample_mask, thresholds))
+            lambda *a: _stacked(_solve_weighted(*a)),
+            lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared)),
+            images, lights, mask, sample_mask, thresholds)
     else:
         out = _stacked(_solve_weighted(images, lights, mask, sample_mask, thresholds))
     normal, albedo, status, n_used, residual = out
