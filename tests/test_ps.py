@@ -195,7 +195,8 @@ def test_per_pixel_lights_match_shared():
 
 @pytest.mark.parametrize("case", ["clean", "dropped", "dropped_finite", "nan_outside_mask",
                                   "colour_dropped", "colour", "sample_mask", "uint8_mask",
-                                  "per_pixel_lights", "per_pixel_lights_dropped"])
+                                  "per_pixel_lights", "per_pixel_lights_dropped",
+                                  "per_pixel_lights_colour_dropped"])
 def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
     # A top-level call on the CPU picks L2's solve on the host and compiles only that one; a
     # call inside a jit takes the `cond` in the program. Both must give the same result.
@@ -227,6 +228,8 @@ def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
         k, h, w = images.shape
         wobble = np.random.default_rng(3).normal(0, 0.03, (k, h, w, 3))
         lights = (2 * (np.asarray(s.lights)[:, None, None] + wobble)).astype(np.float32)
+        if "colour" in case:
+            images = images[..., None] * np.array([1.0, 0.7, 0.4], np.float32)
         if case.endswith("dropped"):
             images[1, :12] = 1.0
             options["shadow_threshold"] = 0.02
@@ -241,12 +244,14 @@ def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
         assert a.shape == b.shape and a.dtype == b.dtype
         np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
     dropping = case in ("dropped", "dropped_finite", "nan_outside_mask", "colour_dropped",
-                        "sample_mask", "per_pixel_lights_dropped")
+                        "sample_mask", "per_pixel_lights_dropped",
+                        "per_pixel_lights_colour_dropped")
     assert (np.asarray(host.n_used)[np.asarray(s.mask)] < len(images)).any() == dropping
     expected = {"dropped": "weighted", "dropped_finite": "weighted_finite",
                 "nan_outside_mask": "weighted_finite",
                 "colour_dropped": "weighted_finite", "sample_mask": "weighted_finite",
-                "per_pixel_lights_dropped": "weighted_finite"}
+                "per_pixel_lights_dropped": "weighted_finite",
+                "per_pixel_lights_colour_dropped": "weighted_finite"}
     assert branches == [expected.get(case, "all_used")]
 
 
