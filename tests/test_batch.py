@@ -233,6 +233,40 @@ def test_batch_chunks_and_list_input(vmap_size):
     np.testing.assert_array_equal(whole.status, chunked.status)
 
 
+def test_vmap_of_l2_keeps_one_solve_and_matches_single_calls():
+    # Under `jax.vmap` the traced solve's predicate is reduced over the captures, so the
+    # program keeps a real `cond` (one solve runs, not both under a select), and a capture
+    # that drops samples sends the batch through the weighted solve, which must still give
+    # each capture its single call's result. Reverse-mode gradients go through it too.
+    s = face_scene(40)
+    clean = np.asarray(s.images)
+    dropping = clean.copy()
+    dropping[1, :12] = 1.0  # saturated samples
+    stack = np.stack([clean, dropping])
+
+    def solve(x):
+        return jaxps.photometric_stereo(x, s.lights, mask=s.mask)
+
+    batched = jax.jit(jax.vmap(solve))
+    assert "conditional" in batched.lower(stack).compile().as_text()
+    out = batched(stack)
+    for i, x in enumerate(stack):
+        single = solve(x)
+        np.testing.assert_array_equal(out.status[i], single.status)
+        np.testing.assert_array_equal(out.n_used[i], single.n_used)
+        np.testing.assert_allclose(out.normals[i], single.normals, atol=1e-5)
+        np.testing.assert_allclose(out.albedo[i], single.albedo, rtol=1e-5, atol=1e-6)
+    assert (np.asarray(out.n_used[1])[np.asarray(s.mask)] < 5).any()
+
+    def loss(x):
+        return jax.jit(solve)(x).albedo.sum()
+
+    grads = jax.grad(lambda xs: jax.vmap(lambda x: jax.jit(solve)(x).albedo.sum())(xs).sum())(
+        stack)
+    for i, x in enumerate(stack):
+        np.testing.assert_allclose(grads[i], jax.grad(loss)(x), rtol=1e-4, atol=1e-6)
+
+
 def test_batch_rejects_different_sizes():
     _, images = _captures(2)
     with pytest.raises(ValueError, match="capture 1 has shape"):

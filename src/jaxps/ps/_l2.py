@@ -431,6 +431,26 @@ def _unit_lights(pixel, x, usable, inside, lights, thresholds):
     return pixel(x, usable, inside, unit, thresholds)
 
 
+@jax.custom_batching.custom_vmap
+def _any_in_batch(flag):
+    """`flag` (a scalar bool); under `jax.vmap`, one unbatched bool: any capture's flag.
+
+    `ps_l2`'s traced `cond` takes this as its predicate, so that under `vmap` over captures
+    it stays a `cond`: one capture that drops a sample sends every capture of the batch
+    through the weighted solve, which agrees with the every-sample-used one to rounding
+    where nothing is dropped (as `photometric_stereo_batch` does for a chunk). On a batched
+    predicate `lax.cond` becomes a select that runs both solves, and XLA-CPU fused the clean
+    solve into the select's stacked `(N, H, W, 3)` loop (`benchmarks/ab_l2.py`, the `vmap`
+    rows). The predicate has no tangent, so the rule needs no derivative of its own."""
+    return flag
+
+
+@_any_in_batch.def_vmap
+def _any_in_batch_vmap(axis_size, in_batched, flag):
+    (batched,) = in_batched
+    return (jnp.any(flag) if batched else flag), False
+
+
 def _stacked(out):
     """Normals (and colour albedo) stacked here, in the pass that computes them. Stacked after
     a `cond`, the three planes were written, then read and written again (`bench_core.py`). A
@@ -492,7 +512,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
         # a per-pixel merge made XLA-CPU fuse the weighted solve into every output.
         needs = _flags(images, mask, sample_mask, thresholds)
         out = jax.lax.cond(
-            jnp.any(needs & 1 == 1),
+            _any_in_batch(jnp.any(needs & 1 == 1)),
             lambda *a: _stacked(_solve_weighted(*a)),
             lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared)),
             images, lights, mask, sample_mask, thresholds)
