@@ -72,9 +72,7 @@ def _samples(x, usable, thresholds, all_finite=False):
     as its own plane, read again by every output's pass. At 1 MP with 5% of the samples
     dropped the weighted solve took 21.6-25.9 against 50.8-53.2 ms at K=12 and 11.4-15.9
     against 24.9-26.6 ms at K=5, results bit-identical (`benchmarks/bench_l2_programs.py`,
-    four runs). (The "used" flags were once packed into an int32 bit plane here; with the
-    packed solve that was no faster for grey stacks and made colour ones slower:
-    `benchmarks/ab_l2.py`.)"""
+    four runs)."""
     dark, saturation, shadow = thresholds
     ks = range(len(x))
     g = [_grey(xk) for xk in x]
@@ -266,10 +264,9 @@ def _pixel_weighted_packed(x, usable, inside, lights, thresholds, all_finite=Fal
     inv_det = 1 / det
     sq = _misfit([gk * det for gk in g], w, lights, num) / (det * det)  # b = num / det
     misfit = jnp.where(code == Status.OK, sq, -code.astype(det.dtype))
-    planes = [jax.lax.complex(num[0] * inv_det, num[1] * inv_det),
-              jax.lax.complex(num[2] / det, misfit)]
+    b = [v * inv_det for v in num]
+    planes = [jax.lax.complex(b[0], b[1]), jax.lax.complex(num[2] / det, misfit)]
     if r_channels:
-        b = [v * inv_det for v in num]
         along_b = [b[0] * v[0] + b[1] * v[1] + b[2] * v[2] for v in (r, *r_channels[:-1])]
         f = [safe_divide(v, along_b[0]) for v in along_b[1:]]
         f += [jnp.zeros_like(det)] * (len(f) % 2)
@@ -394,14 +391,13 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
     colour channels 0.58-0.64x at K=5 and 12 (`benchmarks/ab_l2.py`). Only for a
     program of its own (a branch taken on the host): under `vmap` a `cond` on a batched
     predicate runs both branches."""
-    kernel = _pixel_weighted_packed if packed else None
-    channels = 1 if images.ndim == 3 + batched else images.shape[-1]
+    kernel = _pixel_weighted_packed if packed else _pixel_weighted
 
     def solve(images, lights, mask, sample_mask, thresholds):
         per_capture = batched and lights.ndim == 3
         k = lights.shape[1 if per_capture else 0]
         per_pixel = lights.ndim == 4
-        pixel = functools.partial(kernel or _pixel_weighted, all_finite=all_finite)
+        pixel = functools.partial(kernel, all_finite=all_finite)
         if per_pixel:
             lt = [[(lights[i, ..., p].reshape(-1) if flat else lights[i, ..., p])
                    for p in range(3)] for i in range(k)]
@@ -414,13 +410,14 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
                                   thresholds)
 
     args = (images, lights, mask, sample_mask, thresholds)
-    if kernel is None:
+    if not packed:
         return solve(*args)
     # any predicate XLA cannot evaluate while compiling: both branches are the same solve
     opaque = jnp.isnan(lights.reshape(-1)[0])
-    packed = jax.lax.cond(opaque, solve, solve, *args)
+    planes = jax.lax.cond(opaque, solve, solve, *args)
+    channels = 1 if images.ndim == 3 + batched else images.shape[-1]
     unpack = functools.partial(_unpack_weighted, channels=channels)
-    return _lift(unpack, (0,) * len(packed), flat, batched)(*packed)
+    return _lift(unpack, (0,) * len(planes), flat, batched)(*planes)
 
 
 def _unit_lights(pixel, x, usable, inside, lights, thresholds):
