@@ -14,7 +14,7 @@ samples in the mask below a shadow threshold (every sample finite), for K = 5 an
 - `host, colour`: three channels, `branch="weighted_finite"`;
 - `traced, clean`: `branch=None` with every sample used (no shadow threshold);
 - `vmap x4` and `vmap x4, clean`: `branch=None` under `jax.vmap` over four scaled copies of
-  the capture, where the `cond` becomes a select and both branches run.
+  the capture, with the mask shared (closed over, not mapped).
 
 Also recorded: whether status and n_used are equal and the largest normal difference.
 

@@ -266,6 +266,24 @@ def test_vmap_of_l2_keeps_one_solve_and_matches_single_calls():
         np.testing.assert_allclose(grads[i], jax.grad(loss)(x), rtol=1e-4, atol=1e-6)
 
 
+def test_vmap_gives_a_shared_mask_one_copy_per_capture():
+    # Under `jax.vmap` over the images, L2's shared mask becomes an (N, H, W) array (read by
+    # the solve's loops as a per-capture plane); a mask that is itself batched, or images
+    # that are not, leave it as it is.
+    from jaxps.ps._l2 import _mask_per_capture
+
+    mask = np.random.default_rng(0).random((6, 7)) > 0.5
+    probes = np.zeros(3, bool)
+    copies = jax.vmap(_mask_per_capture, in_axes=(None, 0))(mask, probes)
+    assert copies.shape == (3, 6, 7)
+    np.testing.assert_array_equal(copies, np.broadcast_to(mask, (3, 6, 7)))
+    masks = np.stack([mask, ~mask, mask])
+    np.testing.assert_array_equal(jax.vmap(_mask_per_capture)(masks, probes), masks)
+    kept = jax.vmap(lambda p: _mask_per_capture(mask, False) & p, in_axes=0)(probes)
+    np.testing.assert_array_equal(kept, np.zeros((3, 6, 7), bool))
+    np.testing.assert_array_equal(_mask_per_capture(mask, False), mask)
+
+
 def test_batch_rejects_different_sizes():
     _, images = _captures(2)
     with pytest.raises(ValueError, match="capture 1 has shape"):

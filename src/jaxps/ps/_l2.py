@@ -448,6 +448,27 @@ def _any_in_batch_vmap(axis_size, in_batched, flag):
     return (jnp.any(flag) if batched else flag), False
 
 
+@jax.custom_batching.custom_vmap
+def _mask_per_capture(mask, probe):
+    """`mask` as it is; under `jax.vmap` over the images (`probe`, a bool computed from them,
+    is batched) with the mask shared, one copy of it per capture, written to memory.
+
+    A shared `(H, W)` mask is broadcast over the captures inside every loop that reads it,
+    and XLA-CPU then wrote $|b|$ and $1/|b|$ to memory as planes of their own (as
+    `l2_batch_solve` describes). Both arguments are bools, which have no tangent, so
+    gradients pass by."""
+    return mask
+
+
+@_mask_per_capture.def_vmap
+def _mask_per_capture_vmap(axis_size, in_batched, mask, probe):
+    mask_batched, probe_batched = in_batched
+    if mask_batched or not probe_batched:
+        return mask, mask_batched
+    copies = jnp.broadcast_to(mask, (axis_size, *mask.shape))
+    return jax.lax.optimization_barrier(copies), True
+
+
 def _stacked(out):
     """Normals (and colour albedo) stacked here, in the pass that computes them. Stacked after
     a `cond`, the three planes were written, then read and written again (`bench_core.py`). A
@@ -484,6 +505,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     host for a whole stack, with `l2_batch_flags` and `l2_batch_solve`).
     """
     h, w = images.shape[1:3]
+    mask = _mask_per_capture(mask, jnp.isnan(images.reshape(-1)[0]))
     if shared is None and lights.ndim == 2:
         shared = _shared_constants(lights)
     elif shared is not None:
