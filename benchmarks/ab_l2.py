@@ -16,7 +16,12 @@ samples in the mask below a shadow threshold (every sample finite), for K = 5 an
 - `vmap x4` and `vmap x4, clean`: `branch=None` under `jax.vmap` over four scaled copies of
   the capture, with the mask shared (closed over, not mapped).
 
-Also recorded: whether status and n_used are equal and the largest normal difference.
+Also recorded: whether both compile to the same optimised HLO (metadata left out), whether
+status and n_used are equal, the largest normal difference, and the
+minor page faults of one more call of each (`page_faults`: fresh memory of 32 MiB or more,
+which glibc maps anew on every call). Run under glibc settings that keep freed memory
+(`MALLOC_ARENA_MAX=1 MALLOC_MMAP_MAX_=0 MALLOC_TRIM_THRESHOLD_=68719476736`, recorded in the
+JSON's `allocator`), the timings leave those faults out.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/ab_l2.py --before REV [--name NAME]
     -> benchmarks/results/NAME.json (default ab_l2.json)
@@ -25,8 +30,10 @@ Also recorded: whether status and n_used are equal and the largest normal differ
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib.util
 import pathlib
+import re
 import statistics
 import subprocess
 import sys
@@ -40,11 +47,11 @@ import jaxps
 from jaxps.ps import _l2
 
 try:
-    from benchmarks._common import ROOT, environment, interleaved, write_json
+    from benchmarks._common import ROOT, environment, interleaved, page_faults, write_json
     from benchmarks.bench_core import ring_lights
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import ROOT, environment, interleaved, write_json
+    from benchmarks._common import ROOT, environment, interleaved, page_faults, write_json
     from benchmarks.bench_core import ring_lights
 
 H, W = 1024, 1280
@@ -82,17 +89,24 @@ def programs(module, k, captures=4):
     def vmapped(ths):
         return jax.jit(jax.vmap(lambda x: module.ps_l2(x, lt, msk, None, ths, shared)))
 
-    over_dropped, over_clean = vmapped(thresholds), vmapped(clean)
-    return {
-        "host, grey": lambda: module.ps_l2(images, lt, msk, None, thresholds, shared,
-                                           branch="weighted_finite"),
-        "traced": lambda: module.ps_l2(images, lt, msk, None, thresholds, shared),
-        "host, colour": lambda: module.ps_l2(colour, lt, msk, None, thresholds, shared,
-                                             branch="weighted_finite"),
-        "traced, clean": lambda: module.ps_l2(images, lt, msk, None, clean, shared),
-        f"vmap x{captures}": lambda: over_dropped(stack),
-        f"vmap x{captures}, clean": lambda: over_clean(stack),
+    host = {"branch": "weighted_finite"}
+    return {  # name -> (jitted function, arguments, static keyword arguments)
+        "host, grey": (module.ps_l2, (images, lt, msk, None, thresholds, shared), host),
+        "traced": (module.ps_l2, (images, lt, msk, None, thresholds, shared), {}),
+        "host, colour": (module.ps_l2, (colour, lt, msk, None, thresholds, shared), host),
+        "traced, clean": (module.ps_l2, (images, lt, msk, None, clean, shared), {}),
+        f"vmap x{captures}": (vmapped(thresholds), (stack,), {}),
+        f"vmap x{captures}, clean": (vmapped(clean), (stack,), {}),
     }
+
+
+def compiled_text(fn, args, kwargs):
+    """The optimised HLO of `fn(*args, **kwargs)` without metadata (source lines, frame ids),
+    which differs between two copies of a module even where the program is the same."""
+    text = fn.lower(*args, **kwargs).compile().as_text()
+    text = re.sub(r", metadata=\{[^}]*\}", "", text)
+    return [line for line in text.splitlines()
+            if " = " in line and "stack_frame_id" not in line and "file_name_id" not in line]
 
 
 def main(argv=None):
@@ -107,21 +121,27 @@ def main(argv=None):
     for k in (5, 12):
         now, then = programs(_l2, k), programs(before, k)
         for name in now:
+            calls = {side: functools.partial(lambda f, a, kw: f(*a, **kw), *case[name])
+                     for side, case in (("now", now), ("before", then))}
             # each pair on its own, so that both programs follow the other one alike
-            _, seconds = interleaved({"now": now[name], "before": then[name]}, args.rounds)
-            a, b = now[name](), then[name]()
+            _, seconds = interleaved(calls, args.rounds)
+            a, b = calls["now"](), calls["before"]()
             same = all(np.array_equal(np.asarray(getattr(a, f)), np.asarray(getattr(b, f)))
                        for f in ("status", "n_used"))
             t_now, t_before = (statistics.median(seconds[v]) for v in ("now", "before"))
             rows.append({"K": k, "program": name, "now_ms": 1e3 * t_now,
                          "before_ms": 1e3 * t_before, "now_over_before": t_now / t_before,
+                         "same_hlo": compiled_text(*now[name]) == compiled_text(*then[name]),
                          "status_and_n_used_equal": same,
                          "max_normal_difference": float(np.abs(np.asarray(a.normals)
-                                                               - np.asarray(b.normals)).max())})
+                                                               - np.asarray(b.normals)).max()),
+                         "now_page_faults": page_faults(calls["now"]),
+                         "before_page_faults": page_faults(calls["before"])})
             r = rows[-1]
             print(f"K={k:2d} {name:13s} now {r['now_ms']:7.2f} ms  before {r['before_ms']:7.2f} "
-                  f"ms  {r['now_over_before']:.3f}x  equal {same}  "
-                  f"normals {r['max_normal_difference']:.1e}")
+                  f"ms  {r['now_over_before']:.3f}x  same HLO {r['same_hlo']}  equal {same}  "
+                  f"normals {r['max_normal_difference']:.1e}  page faults {r['now_page_faults']}"
+                  f" / {r['before_page_faults']}")
     path = write_json(args.name, {
         "command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/ab_l2.py "
                    + " ".join(sys.argv[1:] if argv is None else argv),
