@@ -193,13 +193,25 @@ def test_per_pixel_lights_match_shared():
     np.testing.assert_array_equal(per_pixel.status, shared.status)
 
 
+def test_switch_index_names_the_solve_the_host_would_choose():
+    # `ps_l2(branch="switch")` picks its solve in the program from the same flags that
+    # `branch_of` reads on the host: bit 0, some sample dropped; bit 1, some sample not finite.
+    from jaxps.ps import _l2
+
+    for flags in range(4):
+        index = int(jax.jit(_l2.solve_index)(jnp.int32(flags)))
+        assert _l2.SOLVES[index] == _l2.branch_of(flags)
+
+
 @pytest.mark.parametrize("case", ["clean", "dropped", "dropped_finite", "nan_outside_mask",
                                   "colour_dropped", "colour", "sample_mask", "uint8_mask",
                                   "per_pixel_lights", "per_pixel_lights_dropped",
                                   "per_pixel_lights_colour_dropped"])
 def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
-    # A top-level call on the CPU picks L2's solve on the host and compiles only that one; a
-    # call inside a jit takes the `cond` in the program. Both must give the same result.
+    # A top-level call on the CPU runs L2's flag pass and solves in one program of its own
+    # (`branch="switch"`, grey stacks), or picks the solve on the host (colour stacks,
+    # per-pixel lights); a call inside a jit takes the `cond` in the caller's program. Both
+    # must give the same result.
     import jaxps.ps._photometric_stereo as wrapper
     from jaxps.ps import _l2
 
@@ -247,12 +259,11 @@ def test_host_chosen_branch_equals_the_traced_cond(case, monkeypatch):
                         "sample_mask", "per_pixel_lights_dropped",
                         "per_pixel_lights_colour_dropped")
     assert (np.asarray(host.n_used)[np.asarray(s.mask)] < len(images)).any() == dropping
-    expected = {"dropped": "weighted", "dropped_finite": "weighted_finite",
-                "nan_outside_mask": "weighted_finite",
-                "colour_dropped": "weighted_finite", "sample_mask": "weighted_finite",
-                "per_pixel_lights_dropped": "weighted_finite",
+    # the flags read on the host: for colour stacks and per-pixel lights only
+    expected = {"colour": "all_used", "colour_dropped": "weighted_finite",
+                "per_pixel_lights": "all_used", "per_pixel_lights_dropped": "weighted_finite",
                 "per_pixel_lights_colour_dropped": "weighted_finite"}
-    assert branches == [expected.get(case, "all_used")]
+    assert branches == ([expected[case]] if case in expected else [])
 
 
 def test_works_under_jit_and_vmap_over_captures():

@@ -25,8 +25,13 @@ from ..core._status import Status, first_status
 from ..core._store import call as stored_call
 from ..lights._directions import MAX_LIGHT_CONDITION
 
-__all__ = ["PSResult", "branch_of", "host_constants", "l2_batch_flags", "l2_batch_solve",
-           "l2_branch", "l2_needs_weights", "ps_l2", "ps_l2_eager"]
+__all__ = ["SOLVES", "PSResult", "branch_of", "host_constants", "l2_batch_flags",
+           "l2_batch_solve", "l2_branch", "l2_needs_weights", "ps_l2", "ps_l2_eager",
+           "solve_index"]
+
+
+# The solves a host-chosen `branch` names, in the order of `solve_index`.
+SOLVES = ("all_used", "weighted_finite", "weighted")
 
 
 class PSResult(NamedTuple):
@@ -487,13 +492,14 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     `lights` `(K, 3)` or `(K, H, W, 3)`;
     `sample_mask` `(K, H, W)` bool or None (every sample allowed: no mask planes are read, or
     copied into the `cond` below); `shared`: `host_constants(lights)` or None (computed here,
-    differentiably); `branch`: None (decided in the program, by the `cond` below), or the
-    solve already chosen on the host with `l2_branch`: `"all_used"` or `"weighted"`, or
-    `"weighted_finite"` when it has also found every sample inside the mask finite
-    (`photometric_stereo` does so for a top-level call on the CPU, so that only the branch it
-    runs is traced and compiled). Per-pixel lights always take the weighted solve: None
-    (traced), or `"weighted"`/`"weighted_finite"` from the host, which packs it
-    (`_solve_weighted`).
+    differentiably); `branch`: None (decided in the program, by the `cond` below, as a call
+    inside a user's `jit` or `vmap` does), `"switch"` (the flag pass and all three solves
+    of `SOLVES` in one program, of which `lax.switch` runs one: what `photometric_stereo`
+    compiles for a top-level call on the CPU with shared lights), or the solve already
+    chosen on the host with `l2_branch`: `"all_used"` or `"weighted"`, or
+    `"weighted_finite"` when it has also found every sample inside the mask finite.
+    Per-pixel lights always take the weighted solve: None (traced), or
+    `"weighted"`/`"weighted_finite"` from the host, which packs it (`_solve_weighted`).
 
     The kernels take one plane per sample and channel (`(H*W,)` each in the `cond`'s
     branches, `(H, W)` in a host-chosen solve: see docs/photometric_stereo.md) rather than
@@ -511,12 +517,22 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     elif shared is not None:
         shared = _cast_shared(shared, images.dtype)
 
-    if branch not in (None, "all_used", "weighted", "weighted_finite"):
-        raise ValueError("branch must be None, 'all_used', 'weighted' or 'weighted_finite', "
-                         f"got {branch!r}")
-    if lights.ndim == 4 and branch == "all_used":
-        raise ValueError("per-pixel lights take the weighted solve, not branch='all_used'")
-    if branch == "all_used":
+    if branch not in (None, "switch", *SOLVES):
+        raise ValueError("branch must be None, 'switch', 'all_used', 'weighted' or "
+                         f"'weighted_finite', got {branch!r}")
+    if lights.ndim == 4 and branch in ("all_used", "switch"):
+        raise ValueError(f"per-pixel lights take the weighted solve, not branch={branch!r}")
+    if branch == "switch":
+        # The flag pass and the three solves in one program, one solve run: at 1 MP, K=5,
+        # this took 0.70x the time of the flag program, its read on the host and the chosen
+        # solve's program, every sample used, and 0.74x with 5% dropped (docs/speed.md).
+        flags = jnp.max(_flags(images, mask, sample_mask, thresholds, flat=False))
+        out = jax.lax.switch(solve_index(flags), [
+            lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared, flat=False)),
+            lambda *a: _stacked(_solve_weighted(*a, flat=False, all_finite=True, packed=True)),
+            lambda *a: _stacked(_solve_weighted(*a, flat=False, packed=True)),
+        ], images, lights, mask, sample_mask, thresholds)
+    elif branch == "all_used":
         out = _stacked(_solve_all_used(images, mask, sample_mask, thresholds, shared,
                                        flat=False))
     elif branch in ("weighted", "weighted_finite"):  # shared or per-pixel lights
@@ -584,6 +600,12 @@ def branch_of(flags: int) -> str:
     if not flags & 1:
         return "all_used"
     return "weighted" if flags & 2 else "weighted_finite"
+
+
+def solve_index(flags):
+    """`branch_of` in a program: the index into `SOLVES` of the solve that the flags (a
+    traced int32, as `l2_needs_weights` returns) call for."""
+    return jnp.where(flags & 1 == 0, 0, jnp.where(flags & 2 == 0, 1, 2))
 
 
 @jax.jit

@@ -121,11 +121,13 @@ def photometric_stereo(
     **Returns:** a `PSResult` (normals `(H, W, 3)`, albedo `(H, W)` or `(H, W, C)`, status,
     n_used, residual), in the floating dtype of `images`.
 
-    For `"l2"`, a call on the CPU outside any `jit`/`grad`/`vmap` first
-    waits for one read of its flags (does any pixel drop a sample? is any sample non-finite?)
-    and then compiles and runs only the solve it needs (per-pixel lights always take the
-    weighted solve); the solve itself is dispatched asynchronously as usual. Inside a trace the
-    choice is a `lax.cond` in the program (docs/photometric_stereo.md, "How it is built").
+    For `"l2"` on a grey stack with shared lights, a call on the CPU outside any
+    `jit`/`grad`/`vmap` runs a program of its own that holds the flag pass (does any pixel
+    drop a sample? is any sample non-finite?) and the three solves, and runs the one the
+    flags call for. On a colour stack or with per-pixel lights it first waits for one read
+    of its flags and then compiles and runs only the solve it needs (per-pixel lights always
+    take the weighted solve). Inside a trace the choice is a `lax.cond` in the caller's
+    program (docs/photometric_stereo.md, "How it is built").
     For `"irls"` and `"sbl"`, such a call on a multi-core CPU solves bands of rows on threads
     of their own (one per core, at least 16384 pixels each) and returns once all are done;
     the results are those of one call.
@@ -172,15 +174,21 @@ def photometric_stereo(
     per_pixel = len(lights_shape) == 4
     if (method == "l2" and ("shared" in dynamic or per_pixel)
             and cpu_top_level(images, lights, mask, sample_mask)):
-        # L2's branch taken here, as the batch does: only the solve that runs is traced
-        # and compiled (the `cond` compiled both: 0.5-0.8 s at 1 MP, K=5, in
-        # `benchmarks/bench_l2_programs.py`), for one flag read back from the CPU. The
-        # stacks go to the device once, not once a call.
+        # Grey stacks with shared lights: the flag pass and the three solves in one program
+        # with XLA-CPU's older emitters (`ps_l2(branch="switch")`). A flag program, its read
+        # on the host and a program of the chosen solve alone took 1.12-1.45x as long at
+        # 1 MP (`benchmarks/bench_l2_switch.py`), but compile only what runs: colour stacks,
+        # no faster in one program, and per-pixel lights (always the weighted solve; the
+        # flags say whether it must zero samples) keep that way. The stacks go to the device
+        # once.
         images = to_device(images)
         mask, sample_mask = (None if m is None else to_device(m, bool)
                              for m in (mask, sample_mask))
-        branch = l2_branch(images, mask, sample_mask, thresholds)
-        if per_pixel:  # always the weighted solve; the flags say whether to zero samples
+        if per_pixel or images.ndim == 4:
+            branch = l2_branch(images, mask, sample_mask, thresholds)
+        else:
+            branch = "switch"
+        if per_pixel:
             lights = to_device(lights)
             branch = "weighted" if branch == "weighted" else "weighted_finite"
         options = {**options, "branch": branch}
@@ -192,7 +200,7 @@ def photometric_stereo(
         run = _run.__wrapped__
     if run is not _run:
         images = to_device(images)  # the eager solvers take device arrays
-    elif branch == "all_used":
+    elif branch in ("switch", "all_used"):
         run = _run_older_emitters
     elif method in _BANDED_SOLVERS and not dynamic:
         bands = min(cpu_cores(), h * w // _BAND_PIXELS, h)
@@ -285,9 +293,10 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
     )
 
 
-# L2's every-sample-used solve as a top-level CPU program, with XLA-CPU's older emitters:
-# 7.2-8.3 against 10.3-10.8 ms at 1 MP, K=5, in three runs of
-# `benchmarks/bench_l2_programs.py`. The flag pass and the weighted solve were no faster with
-# them (the weighted one slower), so they keep the default.
+# L2's flag pass and solves (`branch="switch"`), or its every-sample-used solve alone, as a
+# top-level CPU program, with XLA-CPU's older emitters. Compiled on its own, the
+# every-sample-used solve took 7.2-8.3 against 10.3-10.8 ms with them at 1 MP, K=5 (three runs
+# of `benchmarks/bench_l2_programs.py`); the switch 0.71-0.98x its time with the default
+# ones on grey stacks, every sample used or 5% dropped (`benchmarks/bench_l2_switch.py`).
 _run_older_emitters = CpuTuned(_run.__wrapped__, OLDER_EMITTERS,
                                static_argnames=("method", "static"))
