@@ -310,6 +310,24 @@ def test_coplanar_lights_rejected_with_condition_number():
         jaxps.photometric_stereo(np.ones((4, 3, 3), np.float32), lights)
 
 
+def test_light_checks_are_kept_by_value_and_a_bad_set_still_raises():
+    # The checked lights and host constants are kept per light set (by their bytes): a set
+    # changed in place after a call is a new set, and a bad set raises every time.
+    s = face_scene(24)
+    lights = np.array(s.lights, np.float64)
+    images = np.asarray(s.images)
+    first = jaxps.photometric_stereo(images, lights)
+    lights[:, 0] *= -1  # mirrored in x, in place
+    mirrored = jaxps.photometric_stereo(images, lights)
+    fresh = jaxps.photometric_stereo(images, np.array(lights))
+    np.testing.assert_array_equal(mirrored.normals, fresh.normals)
+    assert not np.array_equal(mirrored.normals, first.normals)
+    coplanar = jaxps.lights_from_angles([0, 20, -20, 40], [0, 0, 0, 0])
+    for _ in range(2):
+        with pytest.raises(ValueError, match="condition number"):
+            jaxps.photometric_stereo(np.ones((4, 3, 3), np.float32), coplanar)
+
+
 def test_host_constants_match_the_traced_ones():
     # Lights known before tracing take numpy's pseudo-inverse and null basis; they must agree
     # with the differentiable jnp path (the null basis up to rotation: compare N^T N).

@@ -145,9 +145,7 @@ def photometric_stereo(
         if isinstance(lights, jax.core.Tracer):
             lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
         else:
-            validate_lights(lights)  # the checks; it returns float32, so normalise here
-            lights = np.asarray(lights, np.float64)
-            lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
+            lights = _unit_lights(np.asarray(lights, np.float64).tobytes(), lights_shape[0])
     elif lights_shape != (k, h, w, 3):
         raise ValueError(
             f"lights must be (K, 3) or (K, H, W, 3) = {(k, h, w, 3)} to match images "
@@ -170,7 +168,7 @@ def photometric_stereo(
     dynamic = {k: v for k, v in options.items() if isinstance(v, (jax.Array, np.ndarray))}
     branch = None
     if method == "l2" and isinstance(lights, np.ndarray) and lights.ndim == 2:
-        dynamic["shared"] = host_constants(lights)  # no LAPACK call in the jitted solve
+        dynamic["shared"] = _host_constants(lights.tobytes(), k)  # no LAPACK call in the solve
     per_pixel = len(lights_shape) == 4
     if (method == "l2" and ("shared" in dynamic or per_pixel)
             and cpu_top_level(images, lights, mask, sample_mask)):
@@ -254,6 +252,29 @@ def _in_row_bands(images, lights, mask, sample_mask, thresholds, method, static,
     shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct((h, *s.shape[1:]), s.dtype),
                           jax.eval_shape(solve, *args(0)))
     return fill_on_threads(shapes, [functools.partial(band, i) for i in range(n)], n)
+
+
+# A scanner's calls share one light set: its checks and the host constants (three small
+# SVDs, most of the wrapper's own time per call) are kept for the last few sets, by their
+# bytes. The arrays are shared between calls, so they are made read-only.
+@functools.lru_cache(maxsize=16)
+def _unit_lights(data: bytes, k: int) -> np.ndarray:
+    """`(K, 3)` float64 lights given as their bytes, checked (`validate_lights`, which raises
+    for a bad set: nothing is kept then) and unit-normalised."""
+    lights = np.frombuffer(data, np.float64).reshape(k, 3)
+    validate_lights(lights)  # the checks; it returns float32, so normalise here
+    lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
+    lights.setflags(write=False)
+    return lights
+
+
+@functools.lru_cache(maxsize=16)
+def _host_constants(data: bytes, k: int) -> tuple[np.ndarray, ...]:
+    """`host_constants` of `(K, 3)` float64 unit lights given as their bytes."""
+    constants = host_constants(np.frombuffer(data, np.float64).reshape(k, 3))
+    for a in constants:
+        a.setflags(write=False)
+    return constants
 
 
 @functools.partial(jax.jit, static_argnames=("method", "static"))
