@@ -39,7 +39,7 @@ import tempfile
 
 from ._host import cpu_top_level
 
-__all__ = ["call", "stats", "use_store"]
+__all__ = ["active", "call", "stats", "use_store"]
 
 _folder: pathlib.Path | None = None
 _executables: dict = {}  # key -> executable, or None: this key takes the plain jit
@@ -55,6 +55,12 @@ def use_store(folder: str | os.PathLike | None) -> None:
     _folder = None if folder is None else pathlib.Path(folder)
     if _folder is not None:
         _folder.mkdir(parents=True, exist_ok=True)
+
+
+def active() -> bool:
+    """Whether the store is on (`use_store` with a folder): a process that loads its programs
+    from disk, such as a `jaxps` command."""
+    return _folder is not None
 
 
 def stats() -> dict:

@@ -24,6 +24,7 @@ from ..core._host import (
     fill_on_threads,
     to_device,
 )
+from ..core._store import active as store_active
 from ..core._store import call as stored_call
 from ..lights._directions import validate_lights
 from ._l2 import PSResult, host_constants, l2_branch
@@ -124,10 +125,11 @@ def photometric_stereo(
     For `"l2"` on a grey stack with shared lights, a call on the CPU outside any
     `jit`/`grad`/`vmap` runs a program of its own that holds the flag pass (does any pixel
     drop a sample? is any sample non-finite?) and the three solves, and runs the one the
-    flags call for. On a colour stack or with per-pixel lights it first waits for one read
-    of its flags and then compiles and runs only the solve it needs (per-pixel lights always
-    take the weighted solve). Inside a trace the choice is a `lax.cond` in the caller's
-    program (docs/photometric_stereo.md, "How it is built").
+    flags call for. On a colour stack, with per-pixel lights, or with the store of compiled
+    programs on (`jaxps.cli.enable_compilation_cache`, as `jaxps` commands have it) it first
+    waits for one read of its flags and then compiles (or loads) and runs only the solve it
+    needs (per-pixel lights always take the weighted solve). Inside a trace the choice is a
+    `lax.cond` in the caller's program (docs/photometric_stereo.md, "How it is built").
     For `"irls"` and `"sbl"`, such a call on a multi-core CPU solves bands of rows on threads
     of their own (one per core, at least 16384 pixels each) and returns once all are done;
     the results are those of one call.
@@ -174,15 +176,18 @@ def photometric_stereo(
             and cpu_top_level(images, lights, mask, sample_mask)):
         # Grey stacks with shared lights: the flag pass and the three solves in one program
         # with XLA-CPU's older emitters (`ps_l2(branch="switch")`). A flag program, its read
-        # on the host and a program of the chosen solve alone took 1.12-1.45x as long at
-        # 1 MP (`benchmarks/bench_l2_switch.py`), but compile only what runs: colour stacks,
-        # no faster in one program, and per-pixel lights (always the weighted solve; the
-        # flags say whether it must zero samples) keep that way. The stacks go to the device
+        # on the host and a program of the chosen solve alone took 1.10-1.45x as long at
+        # 1 MP (`benchmarks/bench_l2_switch.py`), but compile and load only what runs. So
+        # colour stacks, no faster in one program, per-pixel lights (always the weighted
+        # solve; the flags say whether it must zero samples) and processes that load their
+        # programs from the store (a `jaxps` command: the switch's executable made a warm
+        # `jaxps reconstruct`'s photometric-stereo stage 0.06-0.09 s against 0.02-0.04 s,
+        # `benchmarks/bench_cli.py`) take the solve on the host. The stacks go to the device
         # once.
         images = to_device(images)
         mask, sample_mask = (None if m is None else to_device(m, bool)
                              for m in (mask, sample_mask))
-        if per_pixel or images.ndim == 4:
+        if per_pixel or images.ndim == 4 or store_active():
             branch = l2_branch(images, mask, sample_mask, thresholds)
         else:
             branch = "switch"
