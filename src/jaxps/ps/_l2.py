@@ -523,9 +523,10 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     if lights.ndim == 4 and branch in ("all_used", "switch"):
         raise ValueError(f"per-pixel lights take the weighted solve, not branch={branch!r}")
     if branch == "switch":
-        # The flag pass and the three solves in one program, one solve run: at 1 MP, K=5,
-        # this took 0.70x the time of the flag program, its read on the host and the chosen
-        # solve's program, every sample used, and 0.74x with 5% dropped (docs/speed.md).
+        # The flag pass and the three solves in one program, one solve run: at 1 MP this
+        # took 0.69-0.91x the time of the flag program, its read on the host and the chosen
+        # solve's program, at K=5 and 12, every sample used or 5% dropped
+        # (`benchmarks/bench_l2_switch.py`, four runs; docs/speed.md).
         flags = jnp.max(_flags(images, mask, sample_mask, thresholds, flat=False))
         out = jax.lax.switch(solve_index(flags), [
             lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared, flat=False)),
