@@ -33,11 +33,10 @@ import jaxps
 from jaxps.core._host import aligned, to_device
 from jaxps.ps import _l2
 from jaxps.ps._photometric_stereo import (
-    _host_constants,
+    _checked_lights,
     _run,
     _run_older_emitters,
     _sample_thresholds,
-    _unit_lights,
 )
 
 try:
@@ -77,8 +76,7 @@ def wrapper_ms(frames, lights, rounds):
     """`photometric_stereo(frames, lights)` as a user calls it (aligned numpy frames), with
     its kept light checks and host constants, and with them cleared before every call."""
     def cleared():
-        _unit_lights.cache_clear()
-        _host_constants.cache_clear()
+        _checked_lights.cache_clear()
         return jaxps.photometric_stereo(frames, lights)
 
     _, seconds = interleaved({"kept": lambda: jaxps.photometric_stereo(frames, lights),

@@ -596,17 +596,16 @@ def ps_l2_eager(images, lights, mask, sample_mask, thresholds) -> PSResult:
                  branch=l2_branch(images, mask, sample_mask, thresholds))
 
 
+def solve_index(flags):
+    """The index into `SOLVES` of the solve that the flags of `l2_needs_weights` (or their
+    bitwise or) call for: 0 if no sample is dropped, else 1, or 2 if some sample is not
+    finite. Integer arithmetic, so that it serves a host int and a traced int32 alike."""
+    return (flags & 1) * (1 + ((flags >> 1) & 1))
+
+
 def branch_of(flags: int) -> str:
     """`ps_l2`'s `branch` from the flags of `l2_needs_weights` (or their bitwise or)."""
-    if not flags & 1:
-        return "all_used"
-    return "weighted" if flags & 2 else "weighted_finite"
-
-
-def solve_index(flags):
-    """`branch_of` in a program: the index into `SOLVES` of the solve that the flags (a
-    traced int32, as `l2_needs_weights` returns) call for."""
-    return jnp.where(flags & 1 == 0, 0, jnp.where(flags & 2 == 0, 1, 2))
+    return SOLVES[solve_index(flags)]
 
 
 @jax.jit

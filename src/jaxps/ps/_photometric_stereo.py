@@ -143,11 +143,13 @@ def photometric_stereo(
     k, h, w = images.shape[:3]
 
     lights_shape = np.shape(lights)
+    shared = None  # host constants of numpy lights
     if len(lights_shape) == 2:
         if isinstance(lights, jax.core.Tracer):
             lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
         else:
-            lights = _unit_lights(np.asarray(lights, np.float64).tobytes(), lights_shape[0])
+            lights, shared = _checked_lights(np.asarray(lights, np.float64).tobytes(),
+                                             lights_shape[0])
     elif lights_shape != (k, h, w, 3):
         raise ValueError(
             f"lights must be (K, 3) or (K, H, W, 3) = {(k, h, w, 3)} to match images "
@@ -169,8 +171,8 @@ def photometric_stereo(
     # objects) is static. Unhashable options fall back to running the wrapper eagerly.
     dynamic = {k: v for k, v in options.items() if isinstance(v, (jax.Array, np.ndarray))}
     branch = None
-    if method == "l2" and isinstance(lights, np.ndarray) and lights.ndim == 2:
-        dynamic["shared"] = _host_constants(lights.tobytes(), k)  # no LAPACK call in the solve
+    if method == "l2" and shared is not None:
+        dynamic["shared"] = shared  # no LAPACK call in the jitted solve
     per_pixel = len(lights_shape) == 4
     if (method == "l2" and ("shared" in dynamic or per_pixel)
             and cpu_top_level(images, lights, mask, sample_mask)):
@@ -263,23 +265,16 @@ def _in_row_bands(images, lights, mask, sample_mask, thresholds, method, static,
 # SVDs, most of the wrapper's own time per call) are kept for the last few sets, by their
 # bytes. The arrays are shared between calls, so they are made read-only.
 @functools.lru_cache(maxsize=16)
-def _unit_lights(data: bytes, k: int) -> np.ndarray:
+def _checked_lights(data: bytes, k: int) -> tuple[np.ndarray, tuple[np.ndarray, ...]]:
     """`(K, 3)` float64 lights given as their bytes, checked (`validate_lights`, which raises
-    for a bad set: nothing is kept then) and unit-normalised."""
+    for a bad set: nothing is kept then) and unit-normalised, and their `host_constants`."""
     lights = np.frombuffer(data, np.float64).reshape(k, 3)
     validate_lights(lights)  # the checks; it returns float32, so normalise here
     lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
-    lights.setflags(write=False)
-    return lights
-
-
-@functools.lru_cache(maxsize=16)
-def _host_constants(data: bytes, k: int) -> tuple[np.ndarray, ...]:
-    """`host_constants` of `(K, 3)` float64 unit lights given as their bytes."""
-    constants = host_constants(np.frombuffer(data, np.float64).reshape(k, 3))
-    for a in constants:
+    constants = host_constants(lights)
+    for a in (lights, *constants):
         a.setflags(write=False)
-    return constants
+    return lights, constants
 
 
 @functools.partial(jax.jit, static_argnames=("method", "static"))
