@@ -300,6 +300,13 @@ def test_batch_rejects_bad_lights_and_mask():
                                        mask=np.ones((3, 3), bool))
 
 
+@pytest.mark.parametrize("shape", [(0, 5, 8, 8), (2, 5, 0, 8)])
+def test_batch_rejects_empty_stacks(shape):
+    with pytest.raises(ValueError, match="at least one capture, pixel and channel"):
+        jaxps.photometric_stereo_batch(np.zeros(shape, np.float32),
+                                       jaxps.synthetic.scanner_lights())
+
+
 def test_summary_table():
     text = jaxps.summary_table([{"capture": "a", "ok_%": 99.123}, {"capture": "bb", "ok_%": 5.0}])
     lines = text.splitlines()

@@ -106,6 +106,7 @@ def test_float64_kept():
     "normals, kwargs, match",
     [
         (np.zeros((4, 4, 2), np.float32), {}, r"\(H, W, 3\)"),
+        (np.zeros((0, 4, 3), np.float32), {}, "at least one pixel"),
         (np.zeros((4, 4, 3), np.int32), {}, "floating point"),
         (np.zeros((4, 4, 3), np.float32), {"mask": np.ones((3, 4), bool)}, "mask must have"),
         (np.zeros((4, 4, 3), np.float32), {"mask": np.zeros((4, 4), bool)}, "mask is empty"),

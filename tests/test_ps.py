@@ -289,6 +289,8 @@ def test_works_under_jit_and_vmap_over_captures():
         (dict(images=np.zeros((2, 4, 4), np.float32),
               lights=np.eye(3, dtype=np.float32)[:2]), "at least 3"),
         (dict(lights=np.zeros((5, 4, 4, 2), np.float32)), r"\(K, 3\) or \(K, H, W, 3\)"),
+        (dict(lights=np.ones((5, 2), np.float32)), r"\(K, 3\) or \(K, H, W, 3\), got \(5, 2\)"),
+        (dict(images=np.zeros((5, 0, 4), np.float32)), "at least one pixel"),
         (dict(mask=np.ones((3, 4), bool)), "mask must have shape"),
         (dict(sample_mask=np.ones((5, 4, 3), bool)), "sample_mask must have shape"),
         (dict(method="nope"), "method must be one of"),

@@ -29,7 +29,9 @@ def angular_error(
     """Per-pixel angle in degrees between two normal maps (0 outside `mask`).
 
     Vectors are normalised first; the angle comes from `arctan2(|a x b|, a . b)`, which stays
-    accurate near 0 degrees where `arccos` of a float32 dot product does not.
+    accurate near 0 degrees where `arccos` of a float32 dot product does not. A zero vector
+    in either map (no normal, as a background pixel often holds) gives 0, not NaN: pass
+    `mask` to leave such pixels out of a mean.
     """
     a = jnp.asarray(normals_a)
     b = jnp.asarray(normals_b, a.dtype)

@@ -84,6 +84,8 @@ def _check_normals(normals, mask):
     if not jnp.issubdtype(normals.dtype, jnp.floating):
         raise ValueError(f"normals must be floating point, got {normals.dtype}")
     h, w, _ = normals.shape
+    if h == 0 or w == 0:
+        raise ValueError(f"normals must have at least one pixel, got shape {normals.shape}")
     # Host-side checks on host arrays: no small jitted op to compile in a fresh process.
     if mask is None:
         return normals, to_device(np.ones((h, w), bool))

@@ -69,6 +69,9 @@ def _stack_captures(images):
     if images.ndim not in (4, 5):
         raise ValueError(
             f"images must be (N, K, H, W) or (N, K, H, W, C), got shape {images.shape}")
+    if 0 in images.shape:
+        raise ValueError(f"images must hold at least one capture, pixel and channel, got shape "
+                         f"{images.shape}")
     return images
 
 

@@ -81,6 +81,9 @@ def _check_images(images) -> tuple[jax.Array | np.ndarray, bool]:
         raise ValueError(
             f"images must be (K, H, W) grey or (K, H, W, C) colour, got shape {images.shape}"
         )
+    if 0 in images.shape:
+        raise ValueError(f"images must have at least one pixel and channel, got shape "
+                         f"{images.shape}")
     return images, images.ndim == 3
 
 
@@ -145,6 +148,8 @@ def photometric_stereo(
     lights_shape = np.shape(lights)
     shared = None  # host constants of numpy lights
     if len(lights_shape) == 2:
+        if lights_shape[1] != 3:
+            raise ValueError(f"lights must be (K, 3) or (K, H, W, 3), got {lights_shape}")
         if isinstance(lights, jax.core.Tracer):
             lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
         else:
