@@ -435,6 +435,8 @@ def test_bad_input(scene):
         jaxps.fit_brdf(*args, method="phong")
     with pytest.raises(ValueError, match="images"):
         jaxps.fit_brdf(s["images"][0], *args[1:])
+    with pytest.raises(ValueError, match="n_samples must be at least K"):
+        jaxps.fit_brdf(*args, n_samples=2)
     model = jaxps.fit_brdf(*args, method="lambertian")
     with pytest.raises(ValueError, match="horizon"):
         jaxps.relight(model, s["normals"], s["albedo"], [0.0, 0.0, -1.0])

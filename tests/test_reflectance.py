@@ -281,6 +281,8 @@ def test_fit_bad_input():
         jaxps.fit_roughness(images, normals, albedo, lights, form="torrance")
     with pytest.raises(ValueError, match="sigma"):
         jaxps.oren_nayar(0.1, 0.1, 0.0, -0.2)
+    with pytest.raises(ValueError, match="sigma"):
+        jaxps.render_oren_nayar(normals, albedo, lights, -0.2)
 
 
 # --------------------------------------------------------------------- Oren–Nayar-aware PS

@@ -504,6 +504,9 @@ def fit_brdf(
         raise ValueError("shrink='loo' scales the correction to Lambert's law: it needs "
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
+    if int(n_samples) < images.shape[0]:  # n_samples // K pixels are drawn
+        raise ValueError(f"n_samples must be at least K = {images.shape[0]} (one pixel per "
+                         f"light), got {n_samples!r}")
     if method == "auto":
         if candidates is None:
             candidates = AUTO_CANDIDATES

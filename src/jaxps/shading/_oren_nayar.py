@@ -191,6 +191,8 @@ def render_oren_nayar(
     sigma = jnp.asarray(sigma, dtype)
     if sigma.shape not in ((), normals.shape[:2]):
         raise ValueError(f"sigma must be a scalar or (H, W), got shape {sigma.shape}")
+    if not isinstance(sigma, jax.core.Tracer) and not bool(jnp.all(sigma >= 0)):
+        raise ValueError("sigma (roughness, radians) must be >= 0 everywhere")
     return _render(normals, albedo, lights, sigma, form)
 
 
