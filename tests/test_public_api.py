@@ -23,8 +23,9 @@ PUBLIC_MODULES = ("acquisition", "evaluate", "synthetic", "stability", "report")
 # registration and psm loaders under `jaxps.acquisition`, the stage they belong to.
 ADDED = {
     # Issue 16: the held-out relighting protocol (`score_relighting` and its result).
-    "jaxps": ["RelightScore", "acquisition", "cli", "core", "integration", "lights", "ps",
-              "reflectance", "report", "score_relighting", "shading"],
+    # Issue 17: `flash_visibility`, how strongly a light layout shows its flash strengths.
+    "jaxps": ["RelightScore", "acquisition", "cli", "core", "flash_visibility", "integration",
+              "lights", "ps", "reflectance", "report", "score_relighting", "shading"],
     # Issue 18: `bucket_box`, face boxes grown to shape buckets (fewer compiles).
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
                           "bucket_box", "check_file", "check_frames", "drop_flagged",

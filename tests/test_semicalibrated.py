@@ -107,3 +107,37 @@ def test_bad_input():
                                  intensities=np.ones(4))
     with pytest.raises(ValueError, match="method"):
         jaxps.intensity_estimate(images, scene.lights, method="nope")
+
+
+def test_flash_visibility_is_zero_where_a_change_of_intensities_keeps_the_data_lambertian():
+    flash_visibility = jaxps.flash_visibility
+
+    def lights(az, el):
+        return np.asarray(jaxps.lights_from_angles(np.array(az, float), np.array(el, float)),
+                          np.float64)
+
+    cross = lights([0, 25, -25, 0, 0], [0, 0, 0, 20, -20])
+    four = lights([0, -25, 0, 0], [0, 0, 20, -20])  # the cross less one light
+    assert flash_visibility(cross) == pytest.approx(0.2648, abs=1e-4)  # docs/captures.md
+    assert flash_visibility(four) < 1e-6
+    assert flash_visibility(3.0 * cross) == pytest.approx(flash_visibility(cross))  # unit lights
+    res = jaxps.photometric_stereo(face_scene(24).images, cross, method="semi_calibrated")
+    assert float(res.info["visibility"]) == pytest.approx(flash_visibility(cross), abs=1e-6)
+
+    # Scaling the four frames along the invisible direction leaves exact Lambertian data
+    # exactly Lambertian (zero L2 residual, other normals); along the most visible one it does not.
+    null = np.linalg.svd(four, full_matrices=True)[0][:, 3:].T
+    jac = (null[:, :, None] * four[None]).transpose(0, 2, 1).reshape(-1, 4)
+    vt = np.linalg.svd(jac)[2]
+    invisible = vt[2] - vt[2].mean()  # the null space also holds the common scale
+    rng = np.random.default_rng(0)
+    n = rng.normal(size=(16, 16, 3)) * [0.2, 0.2, 0] + [0, 0, 1]
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    images = 0.5 * np.einsum("kc,hwc->khw", four, n).astype(np.float32)  # lit, unsaturated
+    residual = {}
+    for name, d in (("invisible", invisible), ("visible", vt[0])):
+        scaled = images * (1 + 0.2 * d / np.abs(d).max())[:, None, None].astype(np.float32)
+        out = jaxps.photometric_stereo(scaled, four)
+        assert np.all(np.asarray(out.status) == 0)
+        residual[name] = float(np.median(out.residual))
+    assert residual["invisible"] < 1e-5 and residual["visible"] > 1e-3, residual

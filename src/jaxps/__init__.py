@@ -54,7 +54,8 @@ _NAMES = {
         "validate_lights",
     ),
     "ps": (
-        "INTENSITY_METHODS", "PS_METHODS", "NearResult", "PSResult", "intensity_estimate",
+        "INTENSITY_METHODS", "PS_METHODS", "NearResult", "PSResult", "flash_visibility",
+        "intensity_estimate",
         "near_photometric_stereo", "photometric_stereo", "photometric_stereo_batch",
     ),
     "reflectance": (
@@ -120,6 +121,7 @@ __all__ = [
     "extrapolation_mask",
     "fit_brdf",
     "fit_roughness",
+    "flash_visibility",
     "gradients_from_normals",
     "integrability_map",
     "integrate",

@@ -10,12 +10,14 @@ from ._intensities import INTENSITY_METHODS, intensity_estimate
 from ._l2 import PSResult
 from ._near import NearResult, near_photometric_stereo
 from ._photometric_stereo import PS_METHODS, photometric_stereo
+from ._semicalibrated import flash_visibility
 
 __all__ = [
     "INTENSITY_METHODS",
     "NearResult",
     "PSResult",
     "PS_METHODS",
+    "flash_visibility",
     "intensity_estimate",
     "near_photometric_stereo",
     "photometric_stereo",

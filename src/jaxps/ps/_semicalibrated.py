@@ -35,12 +35,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float
 
 from ..core._host import NO_YNN, CpuTuned, cpu_top_level
 from ..core._linalg import REL_DET_MIN, solve3
 from ._l2 import PSResult, ps_l2_eager
 
-__all__ = ["ps_semi_calibrated"]
+__all__ = ["flash_visibility", "ps_semi_calibrated"]
 
 
 def _geo_normalise(e):
@@ -134,6 +135,30 @@ def _fit_intensities(images, lights, mask, sample_mask, thresholds, stride, solv
 _fit_intensities = CpuTuned(_fit_intensities, NO_YNN, jit=eqx.filter_jit)
 
 
+def flash_visibility(lights: Float[ArrayLike, "K 3"]) -> Float[Array, ""] | np.floating:
+    """How strongly the weakest change of the flash strengths shows in the data: the smallest
+    singular value of $\\delta \\mapsto N\\,\\mathrm{diag}(\\delta)\\,L$ over the $K-1$
+    directions other than a common scale, for unit lights $L$ `(K, 3)` and $N$ `(K-3, K)`
+    orthonormal rows spanning the null space of $L^T$.
+
+    Scaling frame $k$ by $1 + \\delta_k$ leaves every pixel exactly Lambertian (with other
+    normals) where $\\mathrm{diag}(\\delta) L = L A$ for some $3 \\times 3$ $A$; $N$ measures the
+    part that is not. 0 means some intensities cannot be told from the data at all; for
+    lights near the view axis, $\\delta$ linear in the lights' offsets nearly is such a change
+    and tilts the recovered face. Scale-free; measured values and what they did on real
+    faces are in docs/captures.md ("Which lights can self-calibrate").
+    """
+    xp = jnp if isinstance(lights, jax.core.Tracer) else np
+    lights = lights if xp is jnp else np.asarray(lights, np.float64)
+    if lights.ndim != 2 or lights.shape[1] != 3 or lights.shape[0] < 4:
+        raise ValueError(f"lights must be (K, 3) with K >= 4, got {lights.shape}")
+    lights = lights / xp.linalg.norm(lights, axis=-1, keepdims=True)
+    k = lights.shape[0]
+    null = xp.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
+    jac = (null[:, :, None] * lights[None]).transpose(0, 2, 1).reshape(-1, k)
+    return xp.linalg.svd(jac, compute_uv=False)[k - 2]
+
+
 def _default_solver(dtype) -> optx.LevenbergMarquardt:
     """The intensity fit's default: Levenberg–Marquardt stopping when a step changes the
     log-intensities and the objective by less than `rtol` (relative) + `atol`.
@@ -174,7 +199,9 @@ def ps_semi_calibrated(
     `frontal_intensities` `(K,)` (the closed-form start), `converged` (bool scalar: the fit
     met its stopping rule), `fallback` (bool scalar: the fit was unusable, non-finite or worse
     than its start, and the start was used instead), `steps` and `objective` `(2,)` (the
-    normalised objective at the start and at the intensities used). The capture is never
+    normalised objective at the start and at the intensities used) and `visibility`
+    (`flash_visibility` of the lights: near 0, the frames cannot tell some flash strengths
+    from a tilt of the surface, and the fit may trade one for the other). The capture is never
     discarded: a fit that stopped at `max_steps` but lowered the objective keeps its
     intensities, a failed one falls back to the frontal start; per-pixel `status` is that of
     the L2 solve with the intensities used, and `converged`/`fallback` say which case it was.
@@ -209,8 +236,10 @@ def ps_semi_calibrated(
             images, lights, mask, sample_mask, thresholds, stride, solver, max_steps,
             prior_weight,
         )
-    return _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged,
-                   fallback, steps, costs)
+    res = _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged,
+                  fallback, steps, costs)
+    return res._replace(info={**res.info,
+                              "visibility": jnp.asarray(flash_visibility(lights), dtype)})
 
 
 def _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged, fallback, steps,

@@ -1,0 +1,125 @@
+"""Which five lights can self-calibrate their flashes: three layouts on the shared Yale B faces.
+
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_light_layout.py [--register]
+
+Five frames with unknown flash strengths $e_k$ leave $K-1$ free intensities. A change
+$e_k \\to e_k (1 + \\delta_k)$ is invisible to the data where $\\mathrm{diag}(\\delta) L$ stays in
+the column space of the lights $L$ (the data stay exactly Lambertian, with other normals). For
+lights close to the view axis, $\\delta_k$ linear in the light's offset $(l_{k,x}, l_{k,y})$
+nearly does that: to first order it adds a plane to the face's height (a tilt), which no
+per-pixel residual and no integrability test sees. `visibility` is the singular values of the
+map $\\delta \\mapsto N\\,\\mathrm{diag}(\\delta)\\,L$ ($N$ spanning the null space of $L^T$):
+the smallest non-zero one says how strongly the weakest intensity change shows in the
+residuals that `method="semi_calibrated"` fits.
+
+Layouts, five frames each (a frame `check_frames` flags is dropped, as `load_capture` does):
+
+- `scanner_cross`: the face scanner's (0,0), (+-25,0), (0,+-20) (issue 17's lights);
+- `x_35`: (0,0) and four on the diagonals, (+-35,+15), (+-35,-20);
+- `wide_cross`: (0,0), (+-50,0), (0,+45), (0,-35).
+
+Each layout is scored against semi-calibrated PS over every clean light within 50 degrees
+except the layout's own (so no frame is in both), by the median angular error over the face
+(as `bench_faces.py`: reference albedo > 0.05, 4 px from the edge), for mean equalisation,
+frontal intensities (the library's default) and semi-calibrated PS with `prior_weight` 0 and 1.
+With `--register` every frame is first moved onto the (0,0) frame (`bench_faces.py`'s
+registered protocol). Writes benchmarks/results/light_layout.json (or
+light_layout_registered.json).
+"""
+
+from __future__ import annotations
+
+import argparse
+import pathlib
+import sys
+import time
+
+import jax.numpy as jnp
+import numpy as np
+
+import jaxps
+
+try:
+    from benchmarks import bench_faces as faces
+    from benchmarks._common import environment, write_json
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks import bench_faces as faces
+    from benchmarks._common import environment, write_json
+
+LAYOUTS = {
+    "scanner_cross": [(0, 0), (25, 0), (-25, 0), (0, 20), (0, -20)],
+    "x_35": [(0, 0), (35, 15), (-35, 15), (35, -20), (-35, -20)],
+    "wide_cross": [(0, 0), (50, 0), (-50, 0), (0, 45), (0, -35)],
+}
+ESTIMATES = {
+    "mean": faces.cand_estimate("mean"),
+    "frontal": faces.cand_estimate("frontal"),
+    "semi_calibrated": faces.cand_semi(0.0),
+    "semi_calibrated_prior1": faces.cand_semi(1.0),
+}
+
+
+def visibility(keys) -> list[float]:
+    """Singular values, largest first, of $\\delta \\mapsto N \\mathrm{diag}(\\delta) L$ for
+    the unit lights of `keys`; the last is 0 (a common scale changes nothing)."""
+    lights = np.asarray(faces.lights_of(keys), np.float64)
+    null = np.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
+    jac = np.stack([(null * unit[None]) @ lights for unit in np.eye(len(keys))], -1)
+    return np.linalg.svd(jac.reshape(-1, len(keys)), compute_uv=False).round(4).tolist()
+
+
+def score_subject(frames: dict) -> dict:
+    within = sorted(k for k in frames if faces.off_axis(*k) <= faces.MAX_ANGLE)
+    keys, _ = faces.clean(frames, within)
+    out = {}
+    for name, layout in LAYOUTS.items():
+        five, dropped = faces.clean(frames, layout)
+        ref_keys = [k for k in keys if k not in layout]
+        ref = faces.semi(frames, ref_keys)
+        ok = (np.asarray(ref.status == 0) & np.asarray(ref.albedo > faces.ALBEDO_MIN)
+              & faces.inner(ref.status.shape))
+        images = jnp.asarray(np.stack([frames[k] for k in five]))
+        row = {"frames": len(five), "dropped": dropped, "reference_lights": len(ref_keys)}
+        for est, fn in ESTIMATES.items():
+            res, info = fn(images, faces.lights_of(five), {})
+            inside = ok & np.asarray(res.status != jaxps.Status.MASKED)
+            row[est] = {"median_deg": jaxps.evaluate.angular_stats(
+                res.normals, ref.normals, mask=inside)["median_deg"], **info}
+        out[name] = row
+    return out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--register", action="store_true",
+                    help="move every frame onto the (0,0) frame first")
+    args = ap.parse_args(argv)
+    if not (faces.data_dir() / "yaleb").is_dir():
+        sys.exit(f"no Yale B captures under {faces.data_dir()}: set JAXPS_DATA")
+    t0 = time.perf_counter()
+    subjects = {}
+    for subject in faces.SUBJECTS:
+        frames = faces.load_subject(subject)
+        if args.register:
+            frames, _ = faces.register_subject(frames)
+        subjects[subject] = score_subject(frames)
+        print(subject, {lay: {e: round(r[e]["median_deg"], 2) for e in ESTIMATES}
+                        for lay, r in subjects[subject].items()}, flush=True)
+    medians = {lay: {e: float(np.median([subjects[s][lay][e]["median_deg"] for s in subjects]))
+                     for e in ESTIMATES} for lay in LAYOUTS}
+    out = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
+                      f"benchmarks/bench_light_layout.py{' --register' if args.register else ''}",
+           "environment": environment(), "registered": args.register,
+           "layouts": {n: [f"{a:+d},{e:+d}" for a, e in lay] for n, lay in LAYOUTS.items()},
+           "visibility": {n: visibility(lay) for n, lay in LAYOUTS.items()},
+           "subjects": subjects, "median_over_subjects_deg": medians,
+           "seconds": time.perf_counter() - t0}
+    for lay, row in medians.items():
+        print(f"{lay:14s} visibility {out['visibility'][lay]}  median over subjects "
+              + ", ".join(f"{e} {v:.2f}" for e, v in row.items()))
+    print("wrote", write_json("light_layout_registered" if args.register else "light_layout", out))
+
+
+if __name__ == "__main__":
+    main()
