@@ -77,6 +77,19 @@ def test_mismatched_frame_sizes_name_the_file(tmp_path):
         acq.load_stack([tmp_path / "a.pgm", tmp_path / "b.pgm"])
 
 
+def test_load_capture_names_what_is_missing(tmp_path):
+    paths = []
+    for k in range(3):
+        paths.append(tmp_path / f"f{k}.pgm")
+        cv2.imwrite(str(paths[-1]), np.full((3, 3), 100, np.uint8))
+    with pytest.raises(ValueError, match=r"at least 3 frames, got 2 \(f0.pgm, f1.pgm\)"):
+        acq.load_capture(paths[:2], lights=np.eye(3)[:2])
+    with pytest.raises(FileNotFoundError, match="ambient frame not found: .*amb.pgm"):
+        acq.load_capture(paths, lights=np.eye(3), ambient=tmp_path / "amb.pgm")
+    with pytest.raises(FileNotFoundError, match="mask not found: .*m.png"):
+        acq.load_capture(paths, lights=np.eye(3), mask=str(tmp_path / "m.png"))
+
+
 def test_ambient_subtraction_clips_and_saturation_from_raw(tmp_path):
     frames = [np.full((3, 3), v, np.uint8) for v in (10, 100, 255)]
     paths = []

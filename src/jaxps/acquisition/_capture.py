@@ -135,8 +135,16 @@ def load_capture(
         paths = [os.fspath(p) for p in frames]
         if not paths:
             raise ValueError("frames: empty list of files")
+    # Named before any frame is read: a missing file otherwise reads as a missing frame.
+    for what, path in (("ambient frame", ambient), ("mask", mask)):
+        if (isinstance(path, (str, os.PathLike)) and not _is_auto(path)
+                and not os.path.isfile(path)):
+            raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
     names = tuple(os.path.basename(p) for p in paths)
-    images, saturated = load_stack(paths, linearize=linearize)
+    images, saturated = load_stack(paths, linearize=linearize)  # names a missing frame
+    if len(paths) < 3:
+        raise ValueError(f"frames: photometric stereo needs at least 3 frames, got {len(paths)} "
+                         f"({', '.join(names)})")
 
     if yale_names:
         if lights is not None:
