@@ -75,6 +75,40 @@ def test_demo_with_every_default(tmp_path, capsys):
     assert "median angular error" in capsys.readouterr().out
 
 
+def test_semi_calibrated_intensities_report_their_fit(tmp_path, data, caplog, monkeypatch):
+    folder = data / "yaleb" / "yaleB01"
+    frames = [str(folder / f"yaleB01_P00{n}.pgm") for n in FIVE]
+    ambient = str(folder / "yaleB01_P00_Ambient.pgm")
+    assert main(["reconstruct", *frames, "--yale-names", "--ambient", ambient,
+                 "--intensities", "semi_calibrated", "--out", str(tmp_path)]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    fit = summary["intensities"]["fit"]
+    assert summary["intensities"]["method"] == "semi_calibrated"
+    assert set(fit) == {"converged", "fallback", "steps", "objective", "visibility"}
+    # The scanner cross: benchmarks/results/light_layout_registered.json (converged on B01)
+    assert fit["visibility"] == pytest.approx(
+        float(jaxps.flash_visibility(np.array(summary["lights"]))), abs=1e-5)
+    assert fit["visibility"] == pytest.approx(0.2648, abs=1e-4)
+    assert fit["converged"] and not fit["fallback"] and 0 < fit["steps"] < 100
+    assert fit["objective"][1] <= fit["objective"][0]
+    # The fit's report is the capture's too; a fit held to one step does not converge and
+    # says so on the "jaxps" logger.
+    cap = acq.load_capture(frames, yale_names=True, ambient=ambient,
+                           intensities="semi_calibrated")
+    assert cap.intensity_fit == fit
+    assert acq.load_capture(frames, yale_names=True, ambient=ambient).intensity_fit is None
+    from jaxps.acquisition import _capture
+
+    solve = _capture.photometric_stereo
+    monkeypatch.setattr(_capture, "photometric_stereo", lambda *a, **k: solve(*a, **k,
+                                                                             max_steps=1))
+    with caplog.at_level("WARNING", logger="jaxps"):
+        cap = acq.load_capture(frames, yale_names=True, ambient=ambient,
+                               intensities="semi_calibrated")
+    assert not cap.intensity_fit["converged"] and cap.intensity_fit["steps"] == 1
+    assert "without converging" in caplog.text
+
+
 def test_reconstruct_yale_five_lights_against_many_light_reference(tmp_path, data):
     folder = data / "yaleb" / "yaleB01"
     frames = [str(folder / f"yaleB01_P00{n}.pgm") for n in FIVE]

@@ -66,6 +66,8 @@ ADDED = {
 # (`check_quality=True`, as `reconstruct_many` already did); those two entries rewritten.
 # Issue 18: `photometric_stereo_batch` gained `out` (a stream of batches writes into the previous
 # result's arrays); only that entry rewritten.
+# Issue 17: `Capture` gained `intensity_fit` (the semi-calibrated fit's report: converged,
+# fallback, steps, objective, flash visibility); only that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

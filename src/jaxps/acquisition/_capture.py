@@ -18,6 +18,7 @@ import numpy as np
 from ..core._host import aligned, aligned_empty
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
+from ..ps._photometric_stereo import photometric_stereo
 from ._face import bucket_box, crop, detect_face
 from ._files import FRAME_EXTENSIONS, PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
@@ -53,6 +54,9 @@ class Capture(NamedTuple):
     - `shifts`: `(K, 2)` (dy, dx) pixels each frame had moved against the reference frame
       (`estimate_shifts`), or None when not measured (`register=False`).
     - `registered`: whether the frames were moved back onto the reference (see `load_capture`).
+    - `intensity_fit`: for `intensity_method="semi_calibrated"`, the fit's report (host
+      values): `converged`, `fallback` (the frontal start was used), `steps`, `objective`
+      (start, used) and `visibility` (`jaxps.flash_visibility` of the lights); else None.
     """
 
     images: np.ndarray
@@ -67,6 +71,7 @@ class Capture(NamedTuple):
     intensity_method: str = "none"
     shifts: np.ndarray | None = None
     registered: bool = False
+    intensity_fit: dict | None = None
 
 
 def load_capture(
@@ -214,16 +219,18 @@ def load_capture(
         if method == "semi_calibrated":
             raise ValueError("intensities='semi_calibrated' needs lights")
         method = "mean"
-    e = np.ones(len(images), np.float32)
+    e, fit = np.ones(len(images), np.float32), None
     if method != "none":
         grey = images if images.ndim == 3 else images.mean(axis=-1)
-        options = {"sample_mask": ~saturated} if method == "semi_calibrated" else {}
         # "mean" does not look at the lights: without any, give it view-axis placeholders.
         lights_for = (np.tile(np.float32([0, 0, 1]), (len(images), 1)) if light_array is None
                       else light_array)
         try:
-            e = np.asarray(intensity_estimate(grey, lights_for, mask=mask_array, method=method,
-                                              **options), np.float32)
+            if method == "semi_calibrated":
+                e, fit = _semi_calibrated(grey, lights_for, mask_array, ~saturated)
+            else:
+                e = np.asarray(intensity_estimate(grey, lights_for, mask=mask_array,
+                                                  method=method), np.float32)
         except ValueError as err:  # a black frame: keep the capture, say so
             logging.getLogger("jaxps").warning(
                 "load_capture: intensities=%r failed (%s); frames used as read", method, err)
@@ -233,7 +240,26 @@ def load_capture(
                            out=aligned_empty(images.shape, np.float32))
     return Capture(aligned(images, np.float32), light_array, mask_array,
                    saturated, names, box, (1 / e).astype(np.float32),
-                   tuple(n for n in given if n not in names), e, method, shifts, border > 0)
+                   tuple(n for n in given if n not in names), e, method, shifts, border > 0,
+                   fit)
+
+
+def _semi_calibrated(grey, lights, mask, sample_mask):
+    """The semi-calibrated intensities `(K,)` float32 and the fit's report (`Capture`'s
+    `intensity_fit`), with a warning on the "jaxps" logger when the fit did not converge."""
+    res = photometric_stereo(grey, lights, mask=mask, sample_mask=sample_mask,
+                             method="semi_calibrated")
+    info = {k: np.asarray(v) for k, v in res.info.items()}
+    fit = {"converged": bool(info["converged"]), "fallback": bool(info["fallback"]),
+           "steps": int(info["steps"]), "objective": info["objective"].round(8).tolist(),
+           "visibility": round(float(info["visibility"]), 6)}
+    if not fit["converged"]:
+        logging.getLogger("jaxps").warning(
+            "load_capture: the semi-calibrated intensity fit stopped after %d steps without "
+            "converging%s (flash visibility %.3f; docs/captures.md)", fit["steps"],
+            ", and fell back to frontal intensities" if fit["fallback"] else "",
+            fit["visibility"])
+    return np.asarray(info["intensities"], np.float32), fit
 
 
 def _folder_ambient(folder, ambient):

@@ -77,8 +77,9 @@ def reconstruct(
 
     `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
     `"dropped_frames"` in the summary; on by default, as in `load_capture`). `intensities`:
-    see `load_capture` (the summary's `"intensities"` holds the method and the per-frame
-    estimates, `"gains"` their inverses).
+    see `load_capture` (the summary's `"intensities"` holds the method, the per-frame
+    estimates and, for `"semi_calibrated"`, the fit's report `"fit"`; `"gains"` holds their
+    inverses).
     `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
     the measured shifts and whether the frames were moved).
     `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`)."""
@@ -123,7 +124,8 @@ def reconstruct(
         "crop": cap.crop,
         "gains": cap.gains.round(6).tolist(),
         "intensities": {"method": cap.intensity_method,
-                        "per_frame": np.asarray(cap.intensities).round(6).tolist()},
+                        "per_frame": np.asarray(cap.intensities).round(6).tolist(),
+                        **({"fit": cap.intensity_fit} if cap.intensity_fit else {})},
         "motion": _motion(cap),
         "method": method,
         "integration": integration,
