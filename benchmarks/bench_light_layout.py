@@ -45,6 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxps
+from jaxps.ps._semicalibrated import visibility_spectrum
 
 try:
     from benchmarks import bench_faces as faces
@@ -68,12 +69,9 @@ ESTIMATES = {
 
 
 def visibility(keys) -> list[float]:
-    """Singular values, largest first, of $\\delta \\mapsto N \\mathrm{diag}(\\delta) L$ for
-    the unit lights of `keys`; the last is 0 (a common scale changes nothing)."""
-    lights = np.asarray(faces.lights_of(keys), np.float64)
-    null = np.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
-    jac = np.stack([(null * unit[None]) @ lights for unit in np.eye(len(keys))], -1)
-    return np.linalg.svd(jac.reshape(-1, len(keys)), compute_uv=False).round(4).tolist()
+    """`visibility_spectrum` (every singular value behind `jaxps.flash_visibility`, largest
+    first) of the unit lights of `keys`; the last is 0 (a common scale changes nothing)."""
+    return visibility_spectrum(faces.lights_of(keys)).round(4).tolist()
 
 
 def score_subject(frames: dict) -> dict:
@@ -128,9 +126,9 @@ def synthetic(seeds=range(5)) -> dict:
                 images = jnp.asarray(np.clip(np.asarray(scene.images) * gains[:, None, None],
                                              0, 1))
                 mask = np.asarray(face.mask)
-                for est in errors:
+                for est, errs in errors.items():
                     res, _ = ESTIMATES[est](images, lights, {})
-                    errors[est].append(jaxps.evaluate.angular_stats(
+                    errs.append(jaxps.evaluate.angular_stats(
                         res.normals, face.normals, mask=mask)["median_deg"])
             rows[f"{name}, specular {specular}"] = {
                 est: {"median_over_seeds_deg": float(np.median(v)), "per_seed_deg": v}

@@ -148,15 +148,21 @@ def flash_visibility(lights: Float[ArrayLike, "K 3"]) -> Float[Array, ""] | np.f
     and tilts the recovered face. Scale-free; measured values and what they did on real
     faces are in docs/captures.md ("Which lights can self-calibrate").
     """
+    return visibility_spectrum(lights)[np.shape(lights)[0] - 2]
+
+
+def visibility_spectrum(lights):
+    """Every singular value of `flash_visibility`'s map, largest first (numpy for host
+    lights, JAX for traced ones). For K >= 5 the last is the common scale's 0; K = 4 gives
+    the three others."""
     xp = jnp if isinstance(lights, jax.core.Tracer) else np
     lights = lights if xp is jnp else np.asarray(lights, np.float64)
     if lights.ndim != 2 or lights.shape[1] != 3 or lights.shape[0] < 4:
         raise ValueError(f"lights must be (K, 3) with K >= 4, got {lights.shape}")
     lights = lights / xp.linalg.norm(lights, axis=-1, keepdims=True)
-    k = lights.shape[0]
     null = xp.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
-    jac = (null[:, :, None] * lights[None]).transpose(0, 2, 1).reshape(-1, k)
-    return xp.linalg.svd(jac, compute_uv=False)[k - 2]
+    jac = (null[:, :, None] * lights[None]).transpose(0, 2, 1).reshape(-1, lights.shape[0])
+    return xp.linalg.svd(jac, compute_uv=False)
 
 
 def _default_solver(dtype) -> optx.LevenbergMarquardt:
@@ -236,10 +242,8 @@ def ps_semi_calibrated(
             images, lights, mask, sample_mask, thresholds, stride, solver, max_steps,
             prior_weight,
         )
-    res = _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged,
-                  fallback, steps, costs)
-    return res._replace(info={**res.info,
-                              "visibility": jnp.asarray(flash_visibility(lights), dtype)})
+    return _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged,
+                   fallback, steps, costs)
 
 
 def _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged, fallback, steps,
@@ -257,5 +261,6 @@ def _finish(images, lights, mask, sample_mask, thresholds, e, e0, converged, fal
         res.normals, res.albedo, res.status, res.n_used, res.residual,
         {"intensities": e, "frontal_intensities": e0, "converged": converged,
          "fallback": fallback, "steps": jnp.asarray(steps, jnp.int32),
-         "objective": costs},
+         "objective": costs,
+         "visibility": jnp.asarray(flash_visibility(lights), images.dtype)},
     )
