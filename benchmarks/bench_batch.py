@@ -6,7 +6,10 @@ Run: `OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_batch.py [--
 run: N single calls. The `_dropped` rows set a shadow threshold at the 5th percentile of the
 samples in the mask, so every capture takes the weighted solve; the `_k12` rows take 12 lights.
 The batch solves the stack as one image (`_l2_one_image`); the `lights_per_capture` rows give
-the same lights once per capture, `(N, K, 3)`.
+the same lights once per capture, `(N, K, 3)`. A batch keeps its latest two results and
+writes into a dropped one (`_spare_outputs` in `ps/_batch.py`), as the repeated calls here
+do; the `_fresh` rows turn that off (`JAXPS_BATCH_KEEP_BYTES=0`), so every batch writes into
+fresh outputs.
 `--emitters` times the one-image solve compiled with XLA-CPU's default and older emitters
 (results/batch_emitters.json), which chose `_BATCH_PROGRAMS` in `ps/_l2.py`; `--copy` times
 moving an unaligned numpy stack to the device (results/batch_copy.json).
@@ -177,6 +180,19 @@ def main():
             return out
         return run
 
+    def fresh(**options):  # nothing kept between batches: every batch into fresh outputs
+        def run():
+            before = os.environ.get("JAXPS_BATCH_KEEP_BYTES")
+            os.environ["JAXPS_BATCH_KEEP_BYTES"] = "0"
+            try:
+                return jaxps.photometric_stereo_batch(caps_aligned, lights, mask=mask, **options)
+            finally:
+                if before is None:
+                    del os.environ["JAXPS_BATCH_KEEP_BYTES"]
+                else:
+                    os.environ["JAXPS_BATCH_KEEP_BYTES"] = before
+        return run
+
     rows = {
         "batch_l2": lambda: jaxps.photometric_stereo_batch(caps, lights, mask=mask),
         "single_calls_l2": lambda: [jaxps.photometric_stereo(c, lights, mask=mask)
@@ -198,11 +214,15 @@ def main():
                                                     None),
         # A stream of batches: each call writes into the previous call's result (`out=`).
         "batch_l2_aligned_reusing_out": stream(),
+        # Every batch into fresh outputs (`JAXPS_BATCH_KEEP_BYTES=0`): what the other batch
+        # rows were before a batch kept its results for reuse.
+        "batch_l2_aligned_fresh": fresh(),
         "batch_l2_aligned_dropped": lambda: jaxps.photometric_stereo_batch(
             caps_aligned, lights, mask=mask, shadow_threshold=threshold),
         "single_calls_l2_aligned_dropped": lambda: [jaxps.photometric_stereo(
             c, lights, mask=mask, shadow_threshold=threshold) for c in caps_aligned],
         "batch_l2_aligned_dropped_reusing_out": stream(shadow_threshold=threshold),
+        "batch_l2_aligned_dropped_fresh": fresh(shadow_threshold=threshold),
         "batch_l2_aligned_k12": lambda: jaxps.photometric_stereo_batch(caps12, lights12,
                                                                        mask=mask),
         "single_calls_l2_aligned_k12": lambda: [jaxps.photometric_stereo(c, lights12, mask=mask)
@@ -225,6 +245,10 @@ def main():
              "single_calls_l2_on_device"),
             ("reusing_out_over_single_throughput_aligned", "batch_l2_aligned_reusing_out",
              "single_calls_l2_aligned"),
+            ("fresh_over_single_throughput_aligned", "batch_l2_aligned_fresh",
+             "single_calls_l2_aligned"),
+            ("fresh_over_single_throughput_aligned_dropped", "batch_l2_aligned_dropped_fresh",
+             "single_calls_l2_aligned_dropped"),
             ("lax_map_over_single_throughput_aligned", "batch_l2_lax_map_aligned",
              "single_calls_l2_aligned"),
             ("batch_over_single_throughput_aligned_dropped", "batch_l2_aligned_dropped",
@@ -262,6 +286,8 @@ def main():
         "batch_l2_on_device": "batch\n(device)", "single_calls_l2_on_device": "singles\n(device)",
         "batch_l2_vmap": "batch vmap\n(device)", "batch_l2_lax_map_aligned": "lax.map\n(aligned)",
         "batch_l2_aligned_reusing_out": "batch, out=\n(aligned)",
+        "batch_l2_aligned_fresh": "batch, fresh\n(aligned)",
+        "batch_l2_aligned_dropped_fresh": "batch, fresh\n(dropped)",
         "batch_l2_aligned_dropped": "batch\n(dropped)",
         "single_calls_l2_aligned_dropped": "singles\n(dropped)",
         "batch_l2_aligned_dropped_reusing_out": "batch, out=\n(dropped)",

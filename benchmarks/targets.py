@@ -38,8 +38,11 @@ BATCH_ROWS = {  # issue 18: "throughput at least 1.0x that of 8 single calls"
     "aligned host stacks": "batch_over_single_throughput_aligned",
     "stacks on the device": "batch_over_single_throughput_on_device",
     "aligned, `out=` stream": "reusing_out_over_single_throughput_aligned",
+    "aligned, every batch into fresh outputs": "fresh_over_single_throughput_aligned",
     "dropping samples": "batch_over_single_throughput_aligned_dropped",
     "dropping samples, `out=`": "reusing_out_over_single_throughput_aligned_dropped",
+    "dropping samples, every batch into fresh outputs":
+        "fresh_over_single_throughput_aligned_dropped",
     "K=12": "batch_over_single_throughput_aligned_k12",
 }
 

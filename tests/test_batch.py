@@ -220,6 +220,57 @@ def test_batch_l2_reuses_out():
     np.testing.assert_allclose(wide.normals, first_fresh.normals, atol=1e-6)
 
 
+def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
+    """An L2 batch keeps its latest two results; a later batch of the same shapes writes into
+    one the caller has dropped (in one program or in chunks), never into one still held, nor
+    into one of which a numpy view is left. `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing; a bad value is a ValueError naming it."""
+    from jaxps.ps import _batch
+
+    monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
+    scenes, images = _captures()
+    lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
+    stacks = [images * s for s in (1.0, 0.8, 0.6, 0.5, 0.4)]
+
+    def batch(i, **kw):
+        return jaxps.photometric_stereo_batch(stacks[i], lights, mask=mask, **kw)
+
+    expected = [[np.array(a) for a in batch(i)[:5]] for i in range(len(stacks))]
+
+    def check(res, i):
+        for name, got, want in zip(jaxps.PSResult._fields, res[:5], expected[i]):
+            np.testing.assert_array_equal(got, want, err_msg=f"stack {i}: {name}")
+
+    _batch.release_batch_outputs()
+    first = batch(0)
+    pointer = first.normals.unsafe_buffer_pointer()
+    second = batch(1)  # `first` is held: fresh buffers
+    assert second.normals.unsafe_buffer_pointer() != pointer
+    del first
+    third = batch(2)  # into the buffers of `first`, which nothing else holds
+    assert third.normals.unsafe_buffer_pointer() == pointer
+    check(second, 1)
+    check(third, 2)
+    view = np.asarray(second.albedo)  # holds `second.albedo` (through a memoryview)
+    pointers = {second.normals.unsafe_buffer_pointer(), third.normals.unsafe_buffer_pointer()}
+    del second
+    fourth = batch(3)
+    assert fourth.normals.unsafe_buffer_pointer() not in pointers
+    np.testing.assert_array_equal(view, expected[1][1])
+    pointer = third.normals.unsafe_buffer_pointer()
+    del third
+    fifth = batch(4, chunk=2)  # chunks written into the dropped `third`
+    assert fifth.normals.unsafe_buffer_pointer() == pointer
+    check(fourth, 3)
+    check(fifth, 4)
+
+    monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
+    check(batch(4), 4)
+    assert _batch._SPARE == []
+    monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "1GB")
+    with pytest.raises(ValueError, match="JAXPS_BATCH_KEEP_BYTES must be a whole number"):
+        batch(4)
+
+
 @pytest.mark.parametrize("vmap_size", [None, 1])
 def test_batch_chunks_and_list_input(vmap_size):
     """Chunks of 2 of a list of 3 captures equal the whole batch; with `vmap_size` the L2 batch

@@ -5,7 +5,7 @@ Takes `(K, H, W[, C])` linear images and `(K, 3)` or per-pixel `(K, H, W, 3)` li
 family, chosen by `photometric_stereo(method=...)` (`PS_METHODS`).
 """
 
-from ._batch import photometric_stereo_batch
+from ._batch import photometric_stereo_batch, release_batch_outputs
 from ._intensities import INTENSITY_METHODS, intensity_estimate
 from ._l2 import PSResult
 from ._near import NearResult, near_photometric_stereo
@@ -22,4 +22,5 @@ __all__ = [
     "near_photometric_stereo",
     "photometric_stereo",
     "photometric_stereo_batch",
+    "release_batch_outputs",
 ]

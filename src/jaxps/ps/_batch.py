@@ -15,6 +15,9 @@ checks and the solve with one progress bar and a summary table.
 from __future__ import annotations
 
 import functools
+import os
+import sys
+import threading
 from collections.abc import Sequence
 
 import jax
@@ -32,7 +35,7 @@ from ._photometric_stereo import (
     photometric_stereo,
 )
 
-__all__ = ["photometric_stereo_batch"]
+__all__ = ["photometric_stereo_batch", "release_batch_outputs"]
 
 _CACHE: dict = {}
 # Pixels of the L2 batch solved in one program when `chunk` is not given: 16 captures of
@@ -43,6 +46,83 @@ _CACHE: dict = {}
 _PIXELS_PER_PROGRAM = 1 << 24
 # Options of the L2 solve that `_l2_one_image` handles; any other goes the general way.
 _L2_OPTIONS = frozenset({"shadow_threshold", "saturation", "dark_threshold"})
+
+# The outputs of the latest L2 batches (newest first), whose buffers a later batch of the same
+# shapes writes into once the caller has let go of them (`_spare_outputs`). glibc keeps freed
+# blocks under 32 MiB for reuse, which is why single calls at 1 MP write to memory the process
+# already holds; a batch's `(N, ...)` outputs are larger, so glibc maps and zeroes fresh pages
+# for every batch (docs/speed_history.md, "Why the time per pixel grows"). Two entries: in
+# `res = photometric_stereo_batch(...)` in a loop, `res` still holds the previous result while
+# the next batch runs, so the one before it is the one free.
+_SPARE: list[tuple] = []
+_SPARE_ENTRIES = 2
+_SPARE_LOCK = threading.Lock()
+_KEEP_DEFAULT = 1 << 30
+
+
+def _keep_bytes() -> int:
+    """Bytes of batch outputs kept for reuse: `$JAXPS_BATCH_KEEP_BYTES`, default 1 GiB."""
+    value = os.environ.get("JAXPS_BATCH_KEEP_BYTES", "")
+    if value == "":
+        return _KEEP_DEFAULT
+    try:
+        return max(int(value), 0)
+    except ValueError:
+        raise ValueError("JAXPS_BATCH_KEEP_BYTES must be a whole number of bytes (0 keeps "
+                         f"none), got {value!r}") from None
+
+
+def _refcounts(arrays):
+    return [sys.getrefcount(arrays[i]) for i in range(len(arrays))]
+
+
+# What `_refcounts` gives for an object that only its tuple holds (measured, not assumed:
+# interpreters differ in the references a call keeps).
+_ONLY_IN_TUPLE = _refcounts((object(),))[0]
+
+
+def _spare_outputs(specs):
+    """The five arrays of a kept batch result with the `(shape, dtype)`s `specs`, taken out of
+    `_SPARE`, when nothing outside it refers to any of them any more (so donating them cannot
+    change anything the caller sees); else None. A numpy view of an array (`np.asarray`)
+    refers to it through a memoryview, so it counts as held. Should a buffer still have an
+    outside reference, XLA declines its donation and writes a fresh one."""
+    with _SPARE_LOCK:
+        for i, arrays in enumerate(_SPARE):
+            if [(a.shape, a.dtype) for a in arrays] != specs:
+                continue
+            if any(a.is_deleted() for a in arrays):  # donated by the caller (`out=`)
+                continue
+            if max(_refcounts(arrays)) <= _ONLY_IN_TUPLE:
+                return _SPARE.pop(i)
+    return None
+
+
+def _keep(arrays):
+    """Keep a new batch result's arrays for reuse, newest first, within `_keep_bytes()` (with
+    0, nothing is kept and what was is let go)."""
+    budget = _keep_bytes()
+    with _SPARE_LOCK:
+        _SPARE.insert(0, tuple(arrays))
+        kept, total = [], 0
+        for entry in _SPARE[:_SPARE_ENTRIES]:
+            size = sum(a.nbytes for a in entry)
+            if total + size <= budget and not any(a.is_deleted() for a in entry):
+                kept.append(entry)
+                total += size
+        _SPARE[:] = kept
+
+
+def release_batch_outputs() -> None:
+    """Let go of the batch outputs that `photometric_stereo_batch` keeps for reuse.
+
+    An L2 batch on one device keeps its latest two results (up to `$JAXPS_BATCH_KEEP_BYTES`,
+    default 1 GiB; `0` keeps none) so that the next batches of the same shapes write into their
+    buffers once the caller has dropped them, instead of into fresh memory, which costs a page
+    fault per 4 KiB (docs/speed.md, "Many captures"). A result the caller still holds is never
+    written to. This frees what is kept, e.g. at the end of a stream of large batches."""
+    with _SPARE_LOCK:
+        _SPARE.clear()
 
 
 def _stack_captures(images):
@@ -188,13 +268,21 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
         return l2_batch_solve(x, lt, msk, smask, thresholds, cst, dtype=dtype, out=into,
                               branch=branch_of(int(np.bitwise_or.reduce(flags))))
 
+    fresh = out is None
+    if fresh and _keep_bytes() > 0:  # an earlier batch's buffers, if its caller dropped them
+        out = _spare_outputs([(s, np.dtype(d)) for s, d in
+                              _l2_output_specs(n, tuple(images.shape[2:]), dtype)])
     if step >= n:
-        return PSResult(*solve(slice(0, n), out))
-    if out is None:
-        out = _l2_outputs(n, tuple(images.shape[2:]), dtype)
-    for start in range(0, n, step):
-        out = _write_block(out, start, solve(slice(start, min(start + step, n))))
-    return PSResult(*out)
+        result = PSResult(*solve(slice(0, n), out))
+    else:
+        if out is None:
+            out = _l2_outputs(n, tuple(images.shape[2:]), dtype)
+        for start in range(0, n, step):
+            out = _write_block(out, start, solve(slice(start, min(start + step, n))))
+        result = PSResult(*out)
+    if fresh:
+        _keep(result[:5])
+    return result
 
 
 @functools.partial(jax.jit, donate_argnums=0)
@@ -263,12 +351,15 @@ def photometric_stereo_batch(
       after another. See docs/speed.md for the measured ratios.
     - `out`: the `PSResult` of an earlier batch of the same shape and dtype, whose arrays are
       overwritten with this batch's results and returned (they are donated: the old result is
-      unusable afterwards). For a stream of batches, pass each result back once it has been
-      used: the outputs are then written to memory the process already holds. Fresh `(N, ...)`
-      outputs are large enough that the allocator maps new pages for every batch, and the
-      first write to each 4 KiB page costs a page fault (at 8 x 1 MP, `out=` took 22-41% less
-      time than fresh outputs in three runs of `benchmarks/bench_batch.py`). Only for
-      `method="l2"` on one device.
+      unusable afterwards). Only for `method="l2"` on one device. Fresh `(N, ...)` outputs are
+      large enough that the allocator maps new pages for every batch, and the first write to
+      each 4 KiB page costs a page fault (at 8 x 1 MP, `out=` took 22-41% less time than fresh
+      outputs in three runs of `benchmarks/bench_batch.py`). Without `out`, such a batch
+      keeps its latest two results and writes into one of them once the caller has dropped it
+      (no reference left, numpy views included; a result still held is never written), so a
+      loop `res = photometric_stereo_batch(...)` gets this without `out`. What is kept is
+      bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB, `0` keeps nothing) and let go by
+      `jaxps.ps.release_batch_outputs()`.
 
     With several devices the whole chunk is vmapped and its capture axis padded to a multiple
     of the device count and sharded across them (a 1-D mesh `"captures"`).

@@ -11,6 +11,7 @@ shared, $b = L^+ i$ with the pseudo-inverse $L^+$ computed once for the whole im
 from __future__ import annotations
 
 import functools
+import math
 from typing import NamedTuple
 
 import jax
@@ -371,6 +372,21 @@ def _flags(images, mask, sample_mask, thresholds, flat=True, batched=False):
         *_planes(images, sample_mask, mask, flat, batched), thresholds)
 
 
+def _max_flags(needs, per_capture=False):
+    """The bitwise-or (a max: bit 1 comes with bit 0) of `_pixel_flags` over the pixels, the
+    last axes of `needs` (`per_capture`: one per leading capture), as int32.
+
+    Reduced at once, the int32 flags were written to memory first: at 8 x 1 MP a 40 MiB plane
+    that glibc mapped afresh for every batch (10,251 page faults a call). A first max over
+    groups of g pixels along the last axis fuses into the pass that computes the flags, so
+    only 1/g of them, as uint8, reach memory; a single 1 MP call's switch program took
+    0.95-0.97x the time (`OLDER_EMITTERS`, two scratch runs of 100 interleaved rounds)."""
+    w = needs.shape[-1]
+    g = math.gcd(w, 8)
+    part = jnp.max(needs.astype(jnp.uint8).reshape(*needs.shape[:-1], w // g, g), axis=-1)
+    return jnp.max(part, axis=tuple(range(int(per_capture), part.ndim))).astype(jnp.int32)
+
+
 def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True, batched=False):
     """`_pixel_all_used` over every pixel. `batched`: `(N, K, ...)` images as in `_planes`,
     `shared` for all (`(K, 3)` lights) or per capture (`(N, K, 3)` lights, each constant with
@@ -527,7 +543,7 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
         # took 0.69-0.91x the time of the flag program, its read on the host and the chosen
         # solve's program, at K=5 and 12, every sample used or 5% dropped
         # (`benchmarks/bench_l2_switch.py`, four runs; docs/speed.md).
-        flags = jnp.max(_flags(images, mask, sample_mask, thresholds, flat=False))
+        flags = _max_flags(_flags(images, mask, sample_mask, thresholds, flat=False))
         out = jax.lax.switch(solve_index(flags), [
             lambda im, lt, *a: _stacked(_solve_all_used(im, *a, shared, flat=False)),
             lambda *a: _stacked(_solve_weighted(*a, flat=False, all_finite=True, packed=True)),
@@ -574,7 +590,7 @@ def l2_needs_weights(images, mask, sample_mask, thresholds):
     if mask is None:
         mask = jnp.ones(images.shape[1:3], bool)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
-    return jnp.max(_flags(images, mask, sample_mask, thresholds))
+    return _max_flags(_flags(images, mask, sample_mask, thresholds))
 
 
 def l2_branch(images, mask, sample_mask, thresholds) -> str:
@@ -615,8 +631,8 @@ def l2_batch_flags(images, mask, sample_mask, thresholds):
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
-    needs = _flags(images, mask, sample_mask, thresholds, flat=False, batched=True)
-    return jnp.max(needs, axis=(1, 2))
+    return _max_flags(_flags(images, mask, sample_mask, thresholds, flat=False, batched=True),
+                      per_capture=True)
 
 
 def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, dtype):
