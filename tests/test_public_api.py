@@ -24,8 +24,10 @@ PUBLIC_MODULES = ("acquisition", "evaluate", "synthetic", "stability", "report")
 ADDED = {
     # Issue 16: the held-out relighting protocol (`score_relighting` and its result).
     # Issue 17: `flash_visibility`, how strongly a light layout shows its flash strengths.
+    # Issue 18: `release_batch_outputs`, which frees the batch results kept for reuse.
     "jaxps": ["RelightScore", "acquisition", "cli", "core", "flash_visibility", "integration",
-              "lights", "ps", "reflectance", "report", "score_relighting", "shading"],
+              "lights", "ps", "reflectance", "release_batch_outputs", "report",
+              "score_relighting", "shading"],
     # Issue 18: `bucket_box`, face boxes grown to shape buckets (fewer compiles).
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
                           "bucket_box", "check_file", "check_frames", "drop_flagged",

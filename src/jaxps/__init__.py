@@ -57,6 +57,7 @@ _NAMES = {
         "INTENSITY_METHODS", "PS_METHODS", "NearResult", "PSResult", "flash_visibility",
         "intensity_estimate",
         "near_photometric_stereo", "photometric_stereo", "photometric_stereo_batch",
+        "release_batch_outputs",
     ),
     "reflectance": (
         "BRDF_METHODS", "FEATURE_NAMES", "BRDFFit", "BRDFModel", "ModelChoice", "brdf_features",
@@ -141,6 +142,7 @@ __all__ = [
     "plot_lambertian_check",
     "reconstruct_many",
     "register_frames",
+    "release_batch_outputs",
     "relight",
     "render_lambertian",
     "render_oren_nayar",
