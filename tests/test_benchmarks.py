@@ -64,7 +64,8 @@ def _core_run(k5_ratio, ps_ns=(8.0, 8.0), peak_gb=3.5):
 def test_targets_hold_every_run_to_its_bound_in_the_right_direction():
     targets = pytest.importorskip("benchmarks.targets")
     batch = {key: value for key, value in zip(targets.BATCH_ROWS.values(),
-                                              [0.9, 1.0, 1.2, 1.1, 0.5, 0.8, 2.0])}
+                                              [0.9, 1.0, 1.2, 1.1, 0.6, 0.5, 0.8, 0.55, 2.0],
+                                              strict=True)}
     batch["batch_peak_memory"] = {"peak_rss_gb": 4.0}
     table = {r["target"]: r for r in targets.rows(
         [_core_run(0.55, (8.0, 12.0)), _core_run(0.7)], [batch], [], None, None, None)}
