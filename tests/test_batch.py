@@ -271,6 +271,36 @@ def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
         batch(4)
 
 
+def test_batch_l2_copies_unaligned_stacks_into_one_kept_buffer(monkeypatch):
+    """An unaligned numpy stack is copied into aligned memory for XLA-CPU; the next batch of
+    that shape copies into the same buffer, and every batch equals its single calls (no stale
+    data from the stack before). `JAXPS_BATCH_KEEP_BYTES=0` keeps no buffer."""
+    from jaxps.ps import _batch
+
+    monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
+    scenes, images = _captures()
+    lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
+    raw = np.empty(images.size + 1, np.float32)  # one float in: 4 bytes off any alignment
+    stack = raw[1:].reshape(images.shape) if raw[1:].ctypes.data % 64 else raw[:-1].reshape(
+        images.shape)
+    assert stack.ctypes.data % 64 and not stack.flags.owndata
+    _batch.release_batch_outputs()
+    buffers = []
+    for scale in (1.0, 0.7, 0.4):
+        stack[...] = images * scale
+        res = jaxps.photometric_stereo_batch(stack, lights, mask=mask)
+        buffers.append(_batch._STAGE[0].ctypes.data)
+        for i in range(len(images)):
+            single = jaxps.photometric_stereo(images[i] * scale, lights, mask=mask)
+            np.testing.assert_allclose(res.albedo[i], single.albedo, rtol=1e-5, atol=1e-6)
+            np.testing.assert_array_equal(res.status[i], single.status)
+        np.testing.assert_array_equal(stack, images * scale)  # the input is left as it was
+    assert buffers[0] == buffers[1] == buffers[2]
+    monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
+    jaxps.photometric_stereo_batch(stack, lights, mask=mask)
+    assert _batch._STAGE == []
+
+
 @pytest.mark.parametrize("vmap_size", [None, 1])
 def test_batch_chunks_and_list_input(vmap_size):
     """Chunks of 2 of a list of 3 captures equal the whole batch; with `vmap_size` the L2 batch

@@ -23,17 +23,19 @@ def aligned_empty(shape, dtype) -> np.ndarray:
     return buf[start:start + nbytes].view(dtype).reshape(shape)
 
 
-def aligned(array, dtype=None, threads: int = 1) -> np.ndarray:
+def aligned(array, dtype=None, threads: int = 1, out=None) -> np.ndarray:
     """`array` as a C-contiguous, 64-byte-aligned numpy array (itself when it already is one).
 
     `threads` > 1 copies slices of the leading axis on that many threads: the first write to
     fresh memory is a page fault per 4 KiB, and threads take them at once. A 1 MP x 5 x 8
     float32 stack took 35 ms on 2 threads against 62 ms on one and 145 ms for
-    `jax.device_put`'s own copy (`benchmarks/bench_batch.py --copy`)."""
+    `jax.device_put`'s own copy (`benchmarks/bench_batch.py --copy`). `out`: an aligned
+    array of the same shape and dtype to copy into, instead of fresh memory."""
     array = np.asarray(array, dtype)
     if array.flags.c_contiguous and array.ctypes.data % ALIGNMENT == 0:
         return array
-    out = aligned_empty(array.shape, array.dtype)
+    if out is None:
+        out = aligned_empty(array.shape, array.dtype)
     if threads > 1 and array.ndim and len(array) > 1:
         from concurrent.futures import ThreadPoolExecutor
 
