@@ -70,7 +70,8 @@ _KEEP_DEFAULT = 1 << 30
 
 
 def _keep_bytes() -> int:
-    """Bytes of batch outputs kept for reuse: `$JAXPS_BATCH_KEEP_BYTES`, default 1 GiB."""
+    """Bytes kept for reuse (the latest batch results together; the aligned copy of a numpy
+    stack on its own): `$JAXPS_BATCH_KEEP_BYTES`, default 1 GiB."""
     value = os.environ.get("JAXPS_BATCH_KEEP_BYTES", "")
     if value == "":
         return _KEEP_DEFAULT
@@ -160,8 +161,8 @@ def release_batch_outputs() -> None:
     default 1 GiB; `0` keeps none) so that the next batches of the same shapes write into their
     buffers once the caller has dropped them, instead of into fresh memory, which costs a page
     fault per 4 KiB (docs/speed.md, "Many captures"). A result the caller still holds is never
-    written to. It also keeps the aligned copy of the latest unaligned numpy stack (within the
-    same bound), for the next stack's copy. This frees what is kept, e.g. at the end of a
+    written to. It also keeps the aligned copy of the latest unaligned numpy stack (when that
+    copy is within the same number of bytes), for the next stack's copy. This frees what is kept, e.g. at the end of a
     stream of large batches."""
     with _SPARE_LOCK:
         _SPARE.clear()
