@@ -223,8 +223,8 @@ def test_batch_l2_reuses_out():
 def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
     """An L2 batch keeps its latest two results; a later batch of the same shapes writes into
     one the caller has dropped (in one program or in chunks), never into one still held, nor
-    into one of which a numpy view is left. `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing; a bad
-    value is a ValueError naming it."""
+    into one of which a numpy view is left. `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing, nor does
+    a free-threaded interpreter; a bad value is a ValueError naming the variable."""
     from jaxps.ps import _batch
 
     monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
@@ -264,6 +264,12 @@ def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
     check(fourth, 3)
     check(fifth, 4)
 
+    with monkeypatch.context() as m:  # a free-threaded interpreter: nothing kept
+        m.setattr(_batch, "_REFCOUNTS_EXACT", False)
+        check(batch(4), 4)
+        assert _batch._SPARE == []
+    batch(4)
+    assert len(_batch._SPARE) == 1
     monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
     check(batch(4), 4)
     assert _batch._SPARE == []

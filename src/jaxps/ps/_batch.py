@@ -73,13 +73,12 @@ def _keep_bytes() -> int:
     """Bytes kept for reuse (the latest batch results together; the aligned copy of a numpy
     stack on its own): `$JAXPS_BATCH_KEEP_BYTES`, default 1 GiB."""
     value = os.environ.get("JAXPS_BATCH_KEEP_BYTES", "")
-    if value == "":
-        return _KEEP_DEFAULT
     try:
-        return max(int(value), 0)
+        keep = _KEEP_DEFAULT if value == "" else max(int(value), 0)
     except ValueError:
         raise ValueError("JAXPS_BATCH_KEEP_BYTES must be a whole number of bytes (0 keeps "
                          f"none), got {value!r}") from None
+    return keep if _REFCOUNTS_EXACT else 0
 
 
 def _refcounts(arrays):
@@ -87,8 +86,10 @@ def _refcounts(arrays):
 
 
 # What `_refcounts` gives for an object that only its tuple holds (measured, not assumed:
-# interpreters differ in the references a call keeps).
+# interpreters differ in the references a call keeps). A free-threaded interpreter counts
+# references lazily, so there nothing is reused (`_keep_bytes` gives 0).
 _ONLY_IN_TUPLE = _refcounts((object(),))[0]
+_REFCOUNTS_EXACT = getattr(sys, "_is_gil_enabled", lambda: True)()
 
 
 def _spare_outputs(specs):
@@ -415,8 +416,8 @@ def photometric_stereo_batch(
       keeps its latest two results and writes into one of them once the caller has dropped it
       (no reference left, numpy views included; a result still held is never written), so a
       loop `res = photometric_stereo_batch(...)` gets this without `out`. What is kept is
-      bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB, `0` keeps nothing) and let go by
-      `jaxps.ps.release_batch_outputs()`. A numpy stack that is not 64-byte aligned (as
+      bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB, `0` keeps nothing; nothing is
+      kept on a free-threaded Python) and let go by `jaxps.ps.release_batch_outputs()`. A numpy stack that is not 64-byte aligned (as
       `np.stack` makes them) is copied into aligned memory, which XLA-CPU reads in place:
       into the previous such copy's buffer when it fits, and such a call waits for its
       results before it returns, so that the buffer is free for the next.
