@@ -72,9 +72,10 @@ def captures(n, seed=0, k=K):
 
 def emitters(rounds=8):
     """The one-image batch solve (`ps/_l2.py`, `_BATCH_PROGRAMS`) compiled with XLA-CPU's
-    default and older emitters, 8 captures of 1 MP, K=5 and K=12 clean and K=12 weighted:
-    medians of `rounds` interleaved rounds, in ms (`--emitters` ->
-    results/batch_emitters.json)."""
+    default and older emitters, 8 captures of 1 MP, K=5 and K=12, clean and weighted (the
+    weighted rows with a shadow threshold at the 5th percentile of the samples in the mask,
+    as the `_dropped` rows of the main run): medians of `rounds` interleaved rounds, in ms
+    (`--emitters` -> results/batch_emitters.json)."""
     from jaxps.core._host import OLDER_EMITTERS
     from jaxps.ps import _l2
     from jaxps.ps._photometric_stereo import _sample_thresholds
@@ -82,16 +83,18 @@ def emitters(rounds=8):
     programs = {"default": jax.jit(_l2._batch_solve, static_argnames=("branch", "dtype")),
                 "older": jax.jit(_l2._batch_solve, static_argnames=("branch", "dtype"),
                                  compiler_options=OLDER_EMITTERS)}
-    thresholds = tuple(jnp.asarray(t, np.float32) for t in _sample_thresholds())
     fns = {}
     for k in (5, 12):
         caps, lights, mask = captures(N, k=k)
+        shadow = float(np.percentile(caps[0][:, mask], 5))
         lights = np.asarray(lights, np.float64)
         lights /= np.linalg.norm(lights, axis=-1, keepdims=True)
-        args = (jax.device_put(aligned(caps)), jax.device_put(lights.astype(np.float32)),
-                jax.device_put(aligned(np.broadcast_to(mask, (N, *mask.shape)))), None,
-                thresholds, jax.device_put(_l2.host_constants(lights)))
-        for branch in ("all_used", "weighted_finite") if k == 12 else ("all_used",):
+        for branch in ("all_used", "weighted_finite"):
+            thresholds = tuple(jnp.asarray(t, np.float32) for t in _sample_thresholds(
+                shadow_threshold=shadow if branch == "weighted_finite" else None))
+            args = (jax.device_put(aligned(caps)), jax.device_put(lights.astype(np.float32)),
+                    jax.device_put(aligned(np.broadcast_to(mask, (N, *mask.shape)))), None,
+                    thresholds, jax.device_put(_l2.host_constants(lights)))
             for name, program in programs.items():
                 fns[f"k{k}_{branch}_{name}"] = functools.partial(
                     program, *args, branch=branch, dtype=np.dtype(np.float32))

@@ -656,15 +656,17 @@ def _batch_solve_into(out, *args, **kwargs):
 
 _STATIC = ("branch", "dtype")
 _INTO = {"donate_argnums": 0, "keep_unused": True}
-# (into `out`, every sample used) -> program. The every-sample-used solve takes XLA-CPU's
-# older emitters, as `photometric_stereo`'s does: at 8 x 1 MP 93.3 against 127.9 ms (K=5)
-# and 141.1 against 183.2 ms (K=12); the weighted solve was slower with them (341.1 against
-# 263.7 ms at K=12). Medians of 8 interleaved rounds, `bench_batch.py --emitters`.
+# (into `out`, every sample used) -> program, all with XLA-CPU's older emitters, as
+# `photometric_stereo`'s. At 8 x 1 MP, medians of 8 interleaved rounds (`bench_batch.py
+# --emitters`, two runs of 2026-12-04's tenth session), older against default emitters: every
+# sample used 85.8 and 86.7 against 117.3 and 115.3 ms (K=5), 127.2 and 126.4 against 177.7
+# and 174.9 ms (K=12); 5% of the samples dropped 154.0 and 157.4 against 156.2 and 161.2 ms
+# (K=5), 201.2 and 205.4 against 209.7 and 218.2 ms (K=12). (In an earlier round, before the
+# packed weighted solve, the weighted one had been slower with them: 341.1 against 263.7 ms.)
 _BATCH_PROGRAMS = {
-    (False, False): jax.jit(_batch_solve, static_argnames=_STATIC),
-    (True, False): jax.jit(_batch_solve_into, static_argnames=_STATIC, **_INTO),
-    (False, True): CpuTuned(_batch_solve, OLDER_EMITTERS, static_argnames=_STATIC),
-    (True, True): CpuTuned(_batch_solve_into, OLDER_EMITTERS, static_argnames=_STATIC, **_INTO),
+    (into, all_used): CpuTuned(_batch_solve_into if into else _batch_solve, OLDER_EMITTERS,
+                               static_argnames=_STATIC, **(_INTO if into else {}))
+    for into in (False, True) for all_used in (False, True)
 }
 
 
