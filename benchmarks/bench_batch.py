@@ -109,8 +109,10 @@ def emitters(rounds=8):
 def copies(repeats=5):
     """An unaligned numpy stack of 8 captures of 1 MP x 5 moved to the device: by
     `jax.device_put` (its own copy), and by `core._host.aligned` on one thread and on every
-    core, then `device_put` in place. Medians in ms (`--copy` -> results/batch_copy.json)."""
-    from jaxps.core._host import cpu_cores
+    core into fresh memory, and on every core into one aligned buffer used by every call (as
+    `photometric_stereo_batch` keeps it, `_staged`), then `device_put` in place. Medians in ms
+    (`--copy` -> results/batch_copy.json)."""
+    from jaxps.core._host import aligned_empty, cpu_cores
 
     caps = captures(N)[0]
     if caps.ctypes.data % 64 == 0:  # numpy's allocation happened to be aligned: shift it
@@ -119,7 +121,10 @@ def copies(repeats=5):
     fns = {"device_put": lambda: jax.device_put(caps),
            "aligned_1_thread": lambda: jax.device_put(aligned(caps)),
            f"aligned_{cpu_cores()}_threads": lambda: jax.device_put(
-               aligned(caps, threads=cpu_cores()))}
+               aligned(caps, threads=cpu_cores())),
+           f"aligned_{cpu_cores()}_threads_kept_buffer": lambda: jax.device_put(
+               aligned(caps, threads=cpu_cores(), out=kept))}
+    kept = aligned_empty(caps.shape, caps.dtype)
     _, times = interleaved(fns, repeats)
     res = {"env": environment(), "shape": list(caps.shape), "address_mod_64":
            caps.ctypes.data % 64, "median_ms": {k: 1e3 * float(np.median(v))

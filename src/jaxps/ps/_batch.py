@@ -128,7 +128,8 @@ def _staged(images, threads):
     """An unaligned host stack copied into 64-byte-aligned memory (XLA-CPU reads that in
     place), on `threads` threads: into the buffer of the previous such copy when it has the
     same shape and dtype, else into fresh memory, which the kernel maps and zeroes first (at
-    8 x 1 MP x 5, 28 ms for a fresh copy against 16 ms into a reused buffer, a scratch timing).
+    8 x 1 MP x 5 on 2 threads, 17.7 ms into a kept buffer against 56.3 ms into fresh memory,
+    medians of 5 interleaved calls, `benchmarks/bench_batch.py --copy`).
     Returns `(aligned stack, buffer to give back to `_unstage` once every program that reads
     it has finished, or None)`."""
     images = np.asarray(images)

@@ -379,8 +379,10 @@ def _max_flags(needs, per_capture=False):
     Reduced at once, the int32 flags were written to memory first: at 8 x 1 MP a 40 MiB plane
     that glibc mapped afresh for every batch (10,251 page faults a call). A first max over
     groups of g pixels along the last axis fuses into the pass that computes the flags, so
-    only 1/g of them, as uint8, reach memory; a single 1 MP call's switch program took
-    0.95-0.97x the time (`OLDER_EMITTERS`, two scratch runs of 100 interleaved rounds)."""
+    only 1/g of them, as uint8, reach memory. `benchmarks/ab_flags.py` (100 interleaved
+    rounds, same outputs): the batch's flag pass at 8 x 1 MP took 8.3 against 16.3 ms (best;
+    medians 10.0 against 17.6) with no page fault left, and a single 1 MP call's switch
+    program 3.72 against 3.87 ms (medians 4.06 against 4.14)."""
     w = needs.shape[-1]
     g = math.gcd(w, 8)
     part = jnp.max(needs.astype(jnp.uint8).reshape(*needs.shape[:-1], w // g, g), axis=-1)
@@ -658,8 +660,8 @@ _STATIC = ("branch", "dtype")
 _INTO = {"donate_argnums": 0, "keep_unused": True}
 # (into `out`, every sample used) -> program, all with XLA-CPU's older emitters, as
 # `photometric_stereo`'s. At 8 x 1 MP, medians of 8 interleaved rounds (`bench_batch.py
-# --emitters`, two runs of 2026-12-04's tenth session), older against default emitters: every
-# sample used 85.8 and 86.7 against 117.3 and 115.3 ms (K=5), 127.2 and 126.4 against 177.7
+# --emitters`, two runs: `batch_emitters_1.json`, `batch_emitters.json`), older against default:
+# every sample used 85.8 and 86.7 against 117.3 and 115.3 ms (K=5), 127.2 and 126.4 against 177.7
 # and 174.9 ms (K=12); 5% of the samples dropped 154.0 and 157.4 against 156.2 and 161.2 ms
 # (K=5), 201.2 and 205.4 against 209.7 and 218.2 ms (K=12). (In an earlier round, before the
 # packed weighted solve, the weighted one had been slower with them: 341.1 against 263.7 ms.)
