@@ -6,9 +6,12 @@ pixels as uint8 first), interleaved in one process.
 
 At 1280x1024, K=5, every sample used:
 
-- `switch`: a single call's one program (flags, then `lax.switch` over the three solves, as
-  `ps_l2(branch="switch")`), compiled with `OLDER_EMITTERS` as `photometric_stereo` does;
+- `switch`: a single call's one program, `ps_l2(branch="switch")` (flags, then `lax.switch`
+  over the three solves), compiled with `OLDER_EMITTERS` as `photometric_stereo` does;
 - `batch_flags`: `l2_batch_flags` over 8 such captures.
+
+Both are `ps/_l2.py`'s own functions, traced once with `_max_flags` and once with it replaced
+by the reduction it replaced.
 
 Each pair is timed alternately for `--rounds` rounds (the order swapped every round); the
 JSON holds the best and median ms of each, whether the outputs are equal, and the minor page
@@ -17,6 +20,7 @@ faults of one more call of each.
 
 from __future__ import annotations
 
+import contextlib
 import pathlib
 import sys
 import time
@@ -42,23 +46,30 @@ def _reduced_at_once(needs, per_capture=False):
     return jnp.max(needs, axis=tuple(range(int(per_capture), needs.ndim)))
 
 
-def _switch(max_flags):
-    def run(images, lights, mask, thresholds, shared):
-        flags = max_flags(_l2._flags(images, mask, None, thresholds, flat=False))
-        return jax.lax.switch(_l2.solve_index(flags), [
-            lambda im, lt, *a: _l2._stacked(_l2._solve_all_used(im, *a, shared, flat=False)),
-            lambda *a: _l2._stacked(_l2._solve_weighted(*a, flat=False, all_finite=True,
-                                                        packed=True)),
-            lambda *a: _l2._stacked(_l2._solve_weighted(*a, flat=False, packed=True)),
-        ], images, lights, mask, None, thresholds)
-    return jax.jit(run).lower
+@contextlib.contextmanager
+def _reduction(max_flags):
+    """`ps/_l2.py`'s own programs traced with `max_flags` as their flag reduction."""
+    kept = _l2._max_flags
+    _l2._max_flags = max_flags
+    try:
+        yield
+    finally:
+        _l2._max_flags = kept
 
 
-def _batch_flags(max_flags):
-    def run(images, mask, thresholds):
-        return max_flags(_l2._flags(images, mask, None, thresholds, flat=False, batched=True),
-                         per_capture=True)
-    return jax.jit(run)
+def _switch(max_flags, args):
+    """A single call's one program, `ps_l2(branch="switch")`, compiled as
+    `photometric_stereo` compiles it."""
+    with _reduction(max_flags):
+        return jax.jit(lambda *a: _l2.ps_l2(*a, branch="switch")).lower(*args).compile(
+            compiler_options=OLDER_EMITTERS)
+
+
+def _batch_flags(max_flags, args):
+    """`l2_batch_flags`, compiled afresh with `max_flags`."""
+    with _reduction(max_flags):
+        # a new function each time: JAX keeps one trace per function
+        return jax.jit(lambda *a: _l2.l2_batch_flags.__wrapped__(*a)).lower(*args).compile()
 
 
 def _interleaved(fns, args, rounds):
@@ -78,16 +89,15 @@ def main(rounds):
     unit = np.asarray(lights, np.float64)
     unit = unit / np.linalg.norm(unit, axis=1, keepdims=True)
     one = (jax.device_put(aligned(caps[0]))[..., None], jnp.asarray(unit, jnp.float32),
-           jnp.asarray(mask), thresholds,
+           jnp.asarray(mask), None, thresholds,
            _l2._cast_shared(tuple(jnp.asarray(c) for c in _l2.host_constants(unit)),
                             jnp.float32))
     stack = (jax.device_put(aligned(caps)),
-             jax.device_put(aligned(np.broadcast_to(mask, (8, *mask.shape)))), thresholds)
+             jax.device_put(aligned(np.broadcast_to(mask, (8, *mask.shape)))), None, thresholds)
     res = {"env": environment(), "shape": [8, 5, *mask.shape], "rounds": rounds}
     for name, make, args in (("switch", _switch, one), ("batch_flags", _batch_flags, stack)):
-        fns = {"reduced_at_once": make(_reduced_at_once), "max_flags": make(_l2._max_flags)}
-        if name == "switch":
-            fns = {k: f(*args).compile(compiler_options=OLDER_EMITTERS) for k, f in fns.items()}
+        fns = {"reduced_at_once": make(_reduced_at_once, args),
+               "max_flags": make(_l2._max_flags, args)}
         outs = {k: jax.tree.leaves(f(*args)) for k, f in fns.items()}
         equal = all(bool(jnp.array_equal(a, b)) for a, b in zip(*outs.values()))
         del outs

@@ -63,7 +63,7 @@ def main():
     kw = {"dtype": np.dtype(np.float32)}
 
     def batch(branch, into=False, lights_and_consts=(lt, shared)):
-        program = _l2._BATCH_PROGRAMS[into, branch == "all_used"]
+        program = _l2._BATCH_PROGRAMS[into]
         program = getattr(program, "tuned", None) or program  # the CPU's compile options
         li, consts = lights_and_consts
         args = (stack, li, masks, None, thresholds, consts)

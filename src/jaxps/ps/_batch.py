@@ -85,10 +85,10 @@ def _refcounts(arrays):
     return [sys.getrefcount(arrays[i]) for i in range(len(arrays))]
 
 
-# What `_refcounts` gives for an object that only its tuple holds (measured, not assumed:
+# What `_refcounts` gives for an object that only its tuple (or list) holds (measured, not assumed:
 # interpreters differ in the references a call keeps). A free-threaded interpreter counts
 # references lazily, so there nothing is reused (`_keep_bytes` gives 0).
-_ONLY_IN_TUPLE = _refcounts((object(),))[0]
+_ONLY_HELD_HERE = _refcounts((object(),))[0]
 _REFCOUNTS_EXACT = getattr(sys, "_is_gil_enabled", lambda: True)()
 
 
@@ -104,15 +104,14 @@ def _spare_outputs(specs):
                 continue
             if any(a.is_deleted() for a in arrays):  # donated by the caller (`out=`)
                 continue
-            if max(_refcounts(arrays)) <= _ONLY_IN_TUPLE:
+            if max(_refcounts(arrays)) <= _ONLY_HELD_HERE:
                 return _SPARE.pop(i)
     return None
 
 
-def _keep(arrays):
-    """Keep a new batch result's arrays for reuse, newest first, within `_keep_bytes()` (with
-    0, nothing is kept and what was is let go)."""
-    budget = _keep_bytes()
+def _keep(arrays, budget):
+    """Keep a new batch result's arrays for reuse, newest first, within `budget` bytes
+    (`_keep_bytes()`; with 0, nothing is kept and what was is let go)."""
     with _SPARE_LOCK:
         _SPARE.insert(0, tuple(arrays))
         kept, total = [], 0
@@ -124,7 +123,7 @@ def _keep(arrays):
         _SPARE[:] = kept
 
 
-def _staged(images, threads):
+def _staged(images, threads, budget):
     """An unaligned host stack copied into 64-byte-aligned memory (XLA-CPU reads that in
     place), on `threads` threads: into the buffer of the previous such copy when it has the
     same shape and dtype, else into fresh memory, which the kernel maps and zeroes first (at
@@ -136,10 +135,10 @@ def _staged(images, threads):
     if images.flags.c_contiguous and images.ctypes.data % ALIGNMENT == 0:
         return images, None
     buffer = None
-    if _keep_bytes() >= images.nbytes:
+    if budget >= images.nbytes:
         with _SPARE_LOCK:
             if (_STAGE and _STAGE[0].shape == images.shape and _STAGE[0].dtype == images.dtype
-                    and max(_refcounts(_STAGE)) <= _ONLY_IN_TUPLE):
+                    and max(_refcounts(_STAGE)) <= _ONLY_HELD_HERE):
                 buffer = _STAGE.pop()
         if buffer is None:
             buffer = aligned_empty(images.shape, images.dtype)
@@ -150,10 +149,10 @@ def _staged(images, threads):
     return copy, buffer
 
 
-def _unstage(buffer):
-    """Keep `buffer` (from `_staged`) for the next copy, within `_keep_bytes()`."""
+def _unstage(buffer, budget):
+    """Keep `buffer` (from `_staged`) for the next copy, within `budget` bytes."""
     with _SPARE_LOCK:
-        _STAGE[:] = [buffer] if buffer.nbytes <= _keep_bytes() else []
+        _STAGE[:] = [buffer] if buffer.nbytes <= budget else []
 
 
 def release_batch_outputs() -> None:
@@ -295,6 +294,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
     def to_device(a):
         return jax.device_put(aligned(a, threads=threads) if threads else a)
 
+    budget = _keep_bytes()  # bytes kept for the next batch (read once per call)
     staging = None  # the aligned copy of a whole unaligned numpy stack, kept for the next
 
     def solve(sl, into=None):
@@ -307,7 +307,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
         if isinstance(x, jax.Array):
             pass
         elif threads and sl.stop - sl.start == n:
-            x, staging = _staged(x, threads)
+            x, staging = _staged(x, threads, budget)
             x = jax.device_put(x)
         else:
             x = to_device(x)
@@ -325,7 +325,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
                               branch=branch_of(int(np.bitwise_or.reduce(flags))))
 
     fresh = out is None
-    if fresh and _keep_bytes() > 0:  # an earlier batch's buffers, if its caller dropped them
+    if fresh and budget > 0:  # an earlier batch's buffers, if its caller dropped them
         out = _spare_outputs([(s, np.dtype(d)) for s, d in
                               _l2_output_specs(n, tuple(images.shape[2:]), dtype)])
     if step >= n:
@@ -337,10 +337,10 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
             out = _write_block(out, start, solve(slice(start, min(start + step, n))))
         result = PSResult(*out)
     if fresh:
-        _keep(result[:5])
+        _keep(result[:5], budget)
     if staging is not None:  # the solve reads it: wait for it, then the next copy may reuse it
         jax.block_until_ready(result)
-        _unstage(staging)
+        _unstage(staging, budget)
     return result
 
 

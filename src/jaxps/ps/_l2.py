@@ -379,10 +379,10 @@ def _max_flags(needs, per_capture=False):
     Reduced at once, the int32 flags were written to memory first: at 8 x 1 MP a 40 MiB plane
     that glibc mapped afresh for every batch (10,251 page faults a call). A first max over
     groups of g pixels along the last axis fuses into the pass that computes the flags, so
-    only 1/g of them, as uint8, reach memory. `benchmarks/ab_flags.py` (100 interleaved
-    rounds, same outputs): the batch's flag pass at 8 x 1 MP took 8.3 against 16.3 ms (best;
-    medians 10.0 against 17.6) with no page fault left, and a single 1 MP call's switch
-    program 3.72 against 3.87 ms (medians 4.06 against 4.14)."""
+    only 1/g of them, as uint8, reach memory. `benchmarks/ab_flags.py` (three runs of 100
+    interleaved rounds, same outputs): the batch's flag pass at 8 x 1 MP took 8.3-8.6 against
+    10.7-16.3 ms (best), with no page fault left; a single 1 MP call's switch program was
+    unchanged within the noise (3.72-4.16 against 3.87-4.17 ms)."""
     w = needs.shape[-1]
     g = math.gcd(w, 8)
     part = jnp.max(needs.astype(jnp.uint8).reshape(*needs.shape[:-1], w // g, g), axis=-1)
@@ -658,17 +658,16 @@ def _batch_solve_into(out, *args, **kwargs):
 
 _STATIC = ("branch", "dtype")
 _INTO = {"donate_argnums": 0, "keep_unused": True}
-# (into `out`, every sample used) -> program, all with XLA-CPU's older emitters, as
-# `photometric_stereo`'s. At 8 x 1 MP, medians of 8 interleaved rounds (`bench_batch.py
+# into `out` -> program, with XLA-CPU's older emitters (as `photometric_stereo`'s) for every
+# branch. At 8 x 1 MP, medians of 8 interleaved rounds (`bench_batch.py
 # --emitters`, two runs: `batch_emitters_1.json`, `batch_emitters.json`), older against default:
 # every sample used 85.8 and 86.7 against 117.3 and 115.3 ms (K=5), 127.2 and 126.4 against 177.7
 # and 174.9 ms (K=12); 5% of the samples dropped 154.0 and 157.4 against 156.2 and 161.2 ms
 # (K=5), 201.2 and 205.4 against 209.7 and 218.2 ms (K=12). (In an earlier round, before the
 # packed weighted solve, the weighted one had been slower with them: 341.1 against 263.7 ms.)
 _BATCH_PROGRAMS = {
-    (into, all_used): CpuTuned(_batch_solve_into if into else _batch_solve, OLDER_EMITTERS,
-                               static_argnames=_STATIC, **(_INTO if into else {}))
-    for into in (False, True) for all_used in (False, True)
+    False: CpuTuned(_batch_solve, OLDER_EMITTERS, static_argnames=_STATIC),
+    True: CpuTuned(_batch_solve_into, OLDER_EMITTERS, static_argnames=_STATIC, **_INTO),
 }
 
 
@@ -691,7 +690,7 @@ def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, bra
 
     **Returns:** normals `(N, H, W, 3)`, albedo `(N, H, W[, C])`, status, n_used and
     residual `(N, H, W)`; normals, albedo and residual in `dtype`."""
-    program = _BATCH_PROGRAMS[out is not None, branch == "all_used"]
+    program = _BATCH_PROGRAMS[out is not None]
     args = (images, lights, mask, sample_mask, thresholds, shared)
     if out is not None:
         args = (out, *args)
