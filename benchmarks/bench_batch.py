@@ -71,7 +71,8 @@ def captures(n, seed=0, k=K):
 
 
 def emitters(rounds=8):
-    """The one-image batch solve (`ps/_l2.py`, `_BATCH_PROGRAMS`) compiled with XLA-CPU's
+    """The one-image batch solve (`ps/_l2.py`, `_BATCH_PROGRAMS`, and `_BATCH_WEIGHTED`'s two
+    programs for the weighted rows, into fresh memory) compiled with XLA-CPU's
     default and older emitters, 8 captures of 1 MP, K=5 and K=12, clean and weighted (the
     weighted rows with a shadow threshold at the 5th percentile of the samples in the mask,
     as the `_dropped` rows of the main run): medians of `rounds` interleaved rounds, in ms
@@ -80,9 +81,19 @@ def emitters(rounds=8):
     from jaxps.ps import _l2
     from jaxps.ps._photometric_stereo import _sample_thresholds
 
-    programs = {"default": jax.jit(_l2._batch_solve, static_argnames=("branch", "dtype")),
-                "older": jax.jit(_l2._batch_solve, static_argnames=("branch", "dtype"),
-                                 compiler_options=OLDER_EMITTERS)}
+    def weighted(options):  # the two programs of `_l2._BATCH_WEIGHTED`, one after the other
+        planes = jax.jit(_l2._batch_planes, static_argnames="branch", **options)
+        unpack = jax.jit(_l2._batch_unpack, static_argnames=("channels", "dtype"), **options)
+        return lambda *a, dtype: unpack(  # a[-1], the constants of the clean solve, unused
+            None, planes((None, None), *a[:-1], branch="weighted_finite"), channels=1,
+            dtype=dtype)
+
+    programs = {
+        "default": {"all_used": jax.jit(_l2._batch_solve, static_argnames="dtype"),
+                    "weighted_finite": weighted({})},
+        "older": {"all_used": jax.jit(_l2._batch_solve, static_argnames="dtype",
+                                      compiler_options=OLDER_EMITTERS),
+                  "weighted_finite": weighted({"compiler_options": OLDER_EMITTERS})}}
     fns = {}
     for k in (5, 12):
         caps, lights, mask = captures(N, k=k)
@@ -97,7 +108,7 @@ def emitters(rounds=8):
                     thresholds, jax.device_put(_l2.host_constants(lights)))
             for name, program in programs.items():
                 fns[f"k{k}_{branch}_{name}"] = functools.partial(
-                    program, *args, branch=branch, dtype=np.dtype(np.float32))
+                    program[branch], *args, dtype=np.dtype(np.float32))
     _, times = interleaved(fns, rounds)
     res = {"env": environment(), "shape": [N, "K", H, W], "rounds": rounds,
            "median_ms": {k: 1e3 * float(np.median(v)) for k, v in times.items()}}

@@ -4,8 +4,8 @@ Counts, for 1280x1024 grey captures with K=5 lights, the fusions and copies of t
 single-call program (`photometric_stereo`) and its flag pass (`l2_needs_weights`), and of
 the batch's programs for 8 captures solved as one image: its flag pass (`l2_batch_flags`) and
 its solve (`l2_batch_solve`: every sample used, with XLA-CPU's older emitters as the batch
-compiles it, or weighted; lights shared or per capture; into fresh outputs or into `out`'s
-donated buffers), and the every-sample-used solve given one `(H, W)` mask broadcast inside the
+compiles it, or weighted, in two programs whose counts are given apart and summed; lights
+shared or per capture; into fresh outputs or into `out`'s donated buffers and kept planes), and the every-sample-used solve given one `(H, W)` mask broadcast inside the
 program instead of one plane per capture. For each, how many fusions XLA-CPU splits across
 threads (`outer_dimension_partitions`), and for the `out` programs how many outputs alias a
 donated input (`aliased_outputs`).
@@ -62,16 +62,28 @@ def main():
            jax.ShapeDtypeStruct((N, H, W), f32))
     kw = {"dtype": np.dtype(np.float32)}
 
+    def tuned(program):
+        return getattr(program, "tuned", None) or program  # the CPU's compile options
+
     def batch(branch, into=False, lights_and_consts=(lt, shared)):
-        program = _l2._BATCH_PROGRAMS[into]
-        program = getattr(program, "tuned", None) or program  # the CPU's compile options
         li, consts = lights_and_consts
-        args = (stack, li, masks, None, thresholds, consts)
-        return compiled(program, *((out,) if into else ()), *args, branch=branch, **kw)
+        args = (stack, li, masks, None, thresholds)
+        if branch == "all_used":
+            program = tuned(_l2._BATCH_PROGRAMS[into])
+            return compiled(program, *((out,) if into else ()), *args, consts, **kw)
+        # two programs: the packed planes (into kept ones), then the outputs (into `out`)
+        planes_program, unpack_program = map(tuned, _l2._BATCH_WEIGHTED)
+        planes = jax.eval_shape(planes_program, (None, None), *args, branch=branch)
+        scratch = (planes[:-1], planes[-1]) if into else (None, None)
+        into_out = (out[0], out[1], out[2], out[4]) if into else None
+        first = compiled(planes_program, scratch, *args, branch=branch)
+        second = compiled(unpack_program, into_out, planes, channels=1, **kw)
+        return {"planes": first, "outputs": second,
+                **{name: first[name] + second[name] for name in first}}
 
     broadcast_mask = jax.jit(
         lambda x, m, t, s: _l2._batch_solve(x, lt, jnp.broadcast_to(m, (N, H, W)), None, t, s,
-                                            "all_used", kw["dtype"]),
+                                            kw["dtype"]),
         compiler_options=_l2.OLDER_EMITTERS)
     res = {
         "shape": [K, H, W], "batch": N,

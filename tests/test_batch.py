@@ -278,6 +278,59 @@ def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
         batch(4)
 
 
+@pytest.mark.parametrize("colour", [False, True])
+def test_batch_l2_weighted_writes_its_planes_into_kept_buffers(colour, monkeypatch):
+    """A batch that drops samples solves in two programs; the first one's packed planes are
+    kept and the next such batch of that shape writes into them, in one program, with `out=`
+    (all five outputs in place) and in chunks. Every result equals the same batch computed
+    with nothing kept, to the bit; `JAXPS_BATCH_KEEP_BYTES=0` keeps no planes."""
+    from jaxps.ps import _batch
+
+    monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
+    scenes, images = _captures()
+    if colour:
+        images = images[..., None] * np.float32([1.0, 0.8, 0.6])
+    lights, mask = scenes[0].lights, np.asarray(scenes[0].mask)
+    stacks = [images * s for s in (1.0, 0.8, 0.6, 0.5)]
+    shadow = float(np.percentile(images[:, :, mask], 10))
+
+    def batch(i, **kw):
+        return jaxps.photometric_stereo_batch(stacks[i], lights, mask=mask,
+                                              shadow_threshold=shadow, **kw)
+
+    monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
+    expected = [[np.array(a) for a in batch(i)[:5]] for i in range(len(stacks))]
+    assert _batch._SCRATCH == []
+    monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES")
+    assert (expected[0][3] < 5).any() and (expected[0][3] == 5).any()  # some dropped
+
+    def check(res, i):
+        for name, got, want in zip(jaxps.PSResult._fields, res[:5], expected[i]):
+            np.testing.assert_array_equal(got, want, err_msg=f"stack {i}: {name}")
+
+    def planes():
+        return [a.unsafe_buffer_pointer() for a in _batch._SCRATCH[0][1]]
+
+    _batch.release_batch_outputs()
+    first = batch(0)
+    kept = planes()
+    assert len(kept) == (3 if colour else 2)  # b_x + i b_y, b_z + i misfit, colour f_0 + i f_1
+    check(first, 0)
+    second = batch(1)
+    assert planes() == kept
+    check(second, 1)
+    pointers = [a.unsafe_buffer_pointer() for a in first[:5]]
+    third = batch(2, out=first)  # every output in place, n_used (the first program's) too
+    assert [a.unsafe_buffer_pointer() for a in third[:5]] == pointers
+    assert planes() == kept
+    check(third, 2)
+    check(batch(3, chunk=2), 3)  # chunks of 2 and 1: planes of their own shapes
+    check(batch(3), 3)
+    monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
+    check(batch(3), 3)
+    assert _batch._SCRATCH == []
+
+
 def test_batch_l2_copies_unaligned_stacks_into_one_kept_buffer(monkeypatch):
     """An unaligned numpy stack is copied into aligned memory for XLA-CPU; the next batch of
     that shape copies into the same buffer, and every batch equals its single calls (no stale

@@ -65,6 +65,9 @@ _SPARE: list[tuple] = []
 _SPARE_ENTRIES = 2
 # The aligned copy of the latest unaligned numpy stack (`_staged`), for the next one's copy.
 _STAGE: list[np.ndarray] = []
+# The weighted solve's packed planes of the latest chunk that took it (`l2_batch_solve`'s
+# `scratch`), with the `(shape, dtype)` of its stack: internal, never returned to a caller.
+_SCRATCH: list[tuple] = []
 _SPARE_LOCK = threading.Lock()
 _KEEP_DEFAULT = 1 << 30
 
@@ -155,6 +158,22 @@ def _unstage(buffer, budget):
         _STAGE[:] = [buffer] if buffer.nbytes <= budget else []
 
 
+def _take_scratch(key):
+    """The kept packed planes of a stack with `key` (`(shape, dtype)`), taken out; else None."""
+    with _SPARE_LOCK:
+        if _SCRATCH and _SCRATCH[0][0] == key:
+            return _SCRATCH.pop()[1]
+    return None
+
+
+def _keep_scratch(key, planes, budget):
+    """Keep `planes` (None: nothing to keep) for the next weighted chunk of a stack with `key`,
+    within `budget` bytes."""
+    with _SPARE_LOCK:
+        _SCRATCH[:] = ([(key, planes)] if planes is not None
+                       and sum(a.nbytes for a in planes) <= budget else [])
+
+
 def release_batch_outputs() -> None:
     """Let go of the batch outputs that `photometric_stereo_batch` keeps for reuse.
 
@@ -162,12 +181,14 @@ def release_batch_outputs() -> None:
     default 1 GiB; `0` keeps none) so that the next batches of the same shapes write into their
     buffers once the caller has dropped them, instead of into fresh memory, which costs a page
     fault per 4 KiB (docs/speed.md, "Many captures"). A result the caller still holds is never
-    written to. It also keeps the aligned copy of the latest unaligned numpy stack (when that
-    copy is within the same number of bytes), for the next stack's copy. This frees what is kept, e.g. at the end of a
-    stream of large batches."""
+    written to. It also keeps the aligned copy of the latest unaligned numpy stack, and the
+    weighted solve's intermediate planes of the latest batch that dropped samples (each when
+    within the same number of bytes), for the next batch. This frees what is kept, e.g. at the
+    end of a stream of large batches."""
     with _SPARE_LOCK:
         _SPARE.clear()
         _STAGE.clear()
+        _SCRATCH.clear()
 
 
 def _stack_captures(images):
@@ -321,8 +342,13 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
         lt = jax.device_put(part(lights, not shared_lights).astype(solve_dtype))
         cst = jax.device_put(tuple(part(c, not shared_lights) for c in consts))
         flags = np.asarray(l2_batch_flags(x, msk, smask, thresholds))
-        return l2_batch_solve(x, lt, msk, smask, thresholds, cst, dtype=dtype, out=into,
-                              branch=branch_of(int(np.bitwise_or.reduce(flags))))
+        key = (x.shape, x.dtype)
+        res, planes = l2_batch_solve(x, lt, msk, smask, thresholds, cst, dtype=dtype, out=into,
+                                     branch=branch_of(int(np.bitwise_or.reduce(flags))),
+                                     scratch=_take_scratch(key) if budget else None)
+        if planes is not None:
+            _keep_scratch(key, planes, budget)
+        return res
 
     fresh = out is None
     if fresh and budget > 0:  # an earlier batch's buffers, if its caller dropped them

@@ -414,31 +414,39 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
     colour channels 0.58-0.64x at K=5 and 12 (`benchmarks/ab_l2.py`). Only for a
     program of its own (a branch taken on the host): under `vmap` a `cond` on a batched
     predicate runs both branches."""
-    kernel = _pixel_weighted_packed if packed else _pixel_weighted
-
-    def solve(images, lights, mask, sample_mask, thresholds):
-        per_capture = batched and lights.ndim == 3
-        k = lights.shape[1 if per_capture else 0]
-        per_pixel = lights.ndim == 4
-        pixel = functools.partial(kernel, all_finite=all_finite)
-        if per_pixel:
-            lt = [[(lights[i, ..., p].reshape(-1) if flat else lights[i, ..., p])
-                   for p in range(3)] for i in range(k)]
-            pixel = functools.partial(_unit_lights, pixel)
-        else:
-            lt = [[lights[..., i, p] for p in range(3)] for i in range(k)]
-        axis = None if sample_mask is None else 0
-        return _lift(pixel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched,
-                     per_capture)(*_planes(images, sample_mask, mask, flat, batched), lt,
-                                  thresholds)
-
     args = (images, lights, mask, sample_mask, thresholds)
+    solve = functools.partial(_weighted_planes, flat=flat, all_finite=all_finite,
+                              batched=batched, packed=packed)
     if not packed:
         return solve(*args)
     # any predicate XLA cannot evaluate while compiling: both branches are the same solve
     opaque = jnp.isnan(lights.reshape(-1)[0])
-    planes = jax.lax.cond(opaque, solve, solve, *args)
     channels = 1 if images.ndim == 3 + batched else images.shape[-1]
+    return _unpack_planes(jax.lax.cond(opaque, solve, solve, *args), channels, flat, batched)
+
+
+def _weighted_planes(images, lights, mask, sample_mask, thresholds, flat, all_finite, batched,
+                     packed):
+    """`_pixel_weighted` (or `_pixel_weighted_packed` if `packed`) over every pixel, arguments
+    as `_solve_weighted` takes them."""
+    kernel = _pixel_weighted_packed if packed else _pixel_weighted
+    per_capture = batched and lights.ndim == 3
+    k = lights.shape[1 if per_capture else 0]
+    per_pixel = lights.ndim == 4
+    pixel = functools.partial(kernel, all_finite=all_finite)
+    if per_pixel:
+        lt = [[(lights[i, ..., p].reshape(-1) if flat else lights[i, ..., p])
+               for p in range(3)] for i in range(k)]
+        pixel = functools.partial(_unit_lights, pixel)
+    else:
+        lt = [[lights[..., i, p] for p in range(3)] for i in range(k)]
+    axis = None if sample_mask is None else 0
+    return _lift(pixel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched,
+                 per_capture)(*_planes(images, sample_mask, mask, flat, batched), lt, thresholds)
+
+
+def _unpack_planes(planes, channels, flat, batched):
+    """`_unpack_weighted` over every pixel of `_pixel_weighted_packed`'s planes."""
     unpack = functools.partial(_unpack_weighted, channels=channels)
     return _lift(unpack, (0,) * len(planes), flat, batched)(*planes)
 
@@ -637,16 +645,12 @@ def l2_batch_flags(images, mask, sample_mask, thresholds):
                       per_capture=True)
 
 
-def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, branch, dtype):
+def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, dtype):
+    """The every-sample-used solve of a stack (`l2_batch_solve`), in one program."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
-    if branch == "all_used":
-        res = _solve_all_used(images, mask, sample_mask, thresholds,
-                              _cast_shared(shared, images.dtype), flat=False, batched=True)
-    else:
-        res = _solve_weighted(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
-                              flat=False, all_finite=branch == "weighted_finite", batched=True,
-                              packed=True)
+    res = _solve_all_used(images, mask, sample_mask, thresholds,
+                          _cast_shared(shared, images.dtype), flat=False, batched=True)
     normal, albedo, status, n_used, residual = _stacked(res)
     return normal.astype(dtype), albedo.astype(dtype), status, n_used, residual.astype(dtype)
 
@@ -656,23 +660,49 @@ def _batch_solve_into(out, *args, **kwargs):
     return _batch_solve(*args, **kwargs)
 
 
-_STATIC = ("branch", "dtype")
+def _batch_planes(scratch, images, lights, mask, sample_mask, thresholds, branch):
+    """The weighted solve of a stack, first program: `_pixel_weighted_packed`'s planes, n_used
+    last. `scratch`: `(planes, n_used)` of an earlier call of the same shapes, either None,
+    donated: XLA writes the outputs into their buffers."""
+    del scratch
+    if images.dtype == jnp.float16:
+        images = images.astype(jnp.float32)
+    return _weighted_planes(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
+                            flat=False, all_finite=branch == "weighted_finite", batched=True,
+                            packed=True)
+
+
+def _batch_unpack(out, planes, channels, dtype):
+    """The weighted solve of a stack, second program: normals, albedo, status and residual
+    from `_batch_planes`'s `planes`, into `out`'s four arrays (donated) unless None."""
+    del out
+    normal, albedo, status, _, residual = _stacked(_unpack_planes(planes, channels, False, True))
+    return normal.astype(dtype), albedo.astype(dtype), status, residual.astype(dtype)
+
+
 _INTO = {"donate_argnums": 0, "keep_unused": True}
-# into `out` -> program, with XLA-CPU's older emitters (as `photometric_stereo`'s) for every
-# branch. At 8 x 1 MP, medians of 8 interleaved rounds (`bench_batch.py
-# --emitters`, two runs: `batch_emitters_1.json`, `batch_emitters.json`), older against default:
-# every sample used 85.8 and 86.7 against 117.3 and 115.3 ms (K=5), 127.2 and 126.4 against 177.7
-# and 174.9 ms (K=12); 5% of the samples dropped 154.0 and 157.4 against 156.2 and 161.2 ms
-# (K=5), 201.2 and 205.4 against 209.7 and 218.2 ms (K=12). (In an earlier round, before the
-# packed weighted solve, the weighted one had been slower with them: 341.1 against 263.7 ms.)
+# into `out` -> program, with XLA-CPU's older emitters (as `photometric_stereo`'s). At 8 x 1 MP,
+# medians of 8 interleaved rounds (`bench_batch.py --emitters`, two runs:
+# `batch_emitters_1.json`, `batch_emitters.json`), older against default: every sample used
+# 85.8 and 86.7 against 117.3 and 115.3 ms (K=5), 127.2 and 126.4 against 177.7 and 174.9 ms
+# (K=12); 5% of the samples dropped (then one program) 154.0 and 157.4 against 156.2 and 161.2 ms
+# (K=5), 201.2 and 205.4 against 209.7 and 218.2 ms (K=12).
 _BATCH_PROGRAMS = {
-    False: CpuTuned(_batch_solve, OLDER_EMITTERS, static_argnames=_STATIC),
-    True: CpuTuned(_batch_solve_into, OLDER_EMITTERS, static_argnames=_STATIC, **_INTO),
+    False: CpuTuned(_batch_solve, OLDER_EMITTERS, static_argnames="dtype"),
+    True: CpuTuned(_batch_solve_into, OLDER_EMITTERS, static_argnames="dtype", **_INTO),
 }
+# The weighted solve in two programs: the packed planes are outputs of the first, so they can
+# be written into kept buffers (`scratch`). Inside one program (a `cond` keeps XLA from
+# unpacking them, `_solve_weighted`) they were temporaries, fresh memory for every batch at 8 x
+# 1 MP: 160 MB, 40,961 page faults (docs/speed.md, "Many captures").
+_BATCH_WEIGHTED = (
+    CpuTuned(_batch_planes, OLDER_EMITTERS, static_argnames="branch", **_INTO),
+    CpuTuned(_batch_unpack, OLDER_EMITTERS, static_argnames=("channels", "dtype"), **_INTO),
+)
 
 
 def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, branch, dtype,
-                   out=None):
+                   out=None, scratch=None):
     """N captures solved as one image of N times the pixels: each output is one pass over the
     stack, on all threads, written straight into its `(N, ...)` array (no per-capture
     program, no copy).
@@ -686,12 +716,21 @@ def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, bra
     (`branch_of` the or of `l2_batch_flags`): the solve every capture takes, so one capture
     that drops a sample sends the whole stack through the weighted solve, as one such pixel
     does a single image; `out`: the five arrays of an earlier result of the same shapes,
-    donated, whose buffers take the outputs (no fresh memory, so no page faults).
+    donated, whose buffers take the outputs (no fresh memory, so no page faults);
+    `scratch`: the packed planes an earlier weighted call of the same `images` shape and
+    dtype returned, donated, whose buffers take this call's (None: fresh memory).
 
-    **Returns:** normals `(N, H, W, 3)`, albedo `(N, H, W[, C])`, status, n_used and
-    residual `(N, H, W)`; normals, albedo and residual in `dtype`."""
-    program = _BATCH_PROGRAMS[out is not None]
-    args = (images, lights, mask, sample_mask, thresholds, shared)
-    if out is not None:
-        args = (out, *args)
-    return program(*args, branch=branch, dtype=dtype)
+    **Returns:** `(outputs, planes)`: normals `(N, H, W, 3)`, albedo `(N, H, W[, C])`, status,
+    n_used and residual `(N, H, W)` (normals, albedo and residual in `dtype`); and the
+    weighted solve's packed planes, for a later call's `scratch` (None for `"all_used"`)."""
+    args = (images, lights, mask, sample_mask, thresholds)
+    if branch == "all_used":
+        program = _BATCH_PROGRAMS[out is not None]
+        return program(*((out,) if out is not None else ()), *args, shared, dtype=dtype), None
+    planes_program, unpack_program = _BATCH_WEIGHTED
+    planes = planes_program((scratch, None if out is None else out[3]), *args, branch=branch)
+    channels = 1 if images.ndim == 4 else images.shape[-1]
+    normal, albedo, status, residual = unpack_program(
+        None if out is None else (out[0], out[1], out[2], out[4]), planes, channels=channels,
+        dtype=dtype)
+    return (normal, albedo, status, planes[-1], residual), planes[:-1]
