@@ -225,7 +225,7 @@ def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
     one the caller has dropped (in one program or in chunks), never into one still held, nor
     into one of which a numpy view is left. `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing, nor does
     a free-threaded interpreter; a bad value is a ValueError naming the variable."""
-    from jaxps.ps import _batch
+    from jaxps.ps import _batch, _kept
 
     monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
     scenes, images = _captures()
@@ -265,14 +265,14 @@ def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
     check(fifth, 4)
 
     with monkeypatch.context() as m:  # a free-threaded interpreter: nothing kept
-        m.setattr(_batch, "_REFCOUNTS_EXACT", False)
+        m.setattr(_kept, "_REFCOUNTS_EXACT", False)
         check(batch(4), 4)
-        assert _batch._SPARE == []
+        assert _batch._BATCH == []
     batch(4)
-    assert len(_batch._SPARE) == 1
+    assert len(_batch._BATCH) == 1
     monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
     check(batch(4), 4)
-    assert _batch._SPARE == []
+    assert _batch._BATCH == []
     monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "1GB")
     with pytest.raises(ValueError, match="JAXPS_BATCH_KEEP_BYTES must be a whole number"):
         batch(4)

@@ -407,3 +407,63 @@ def test_eager_solvers_take_the_l2_branch_on_the_host(case, monkeypatch):
     # inside a trace the helper is ps_l2 itself (no flag read back)
     jax.jit(lambda x: _l2.ps_l2_eager(x, lights, mask, None, thresholds))(images)
     assert len(flags) == 1
+
+
+@pytest.mark.parametrize("colour", [False, True])
+def test_large_single_calls_write_into_a_result_the_caller_dropped(colour, monkeypatch):
+    """A top-level L2 call whose normals exceed `_KEEP_FROM_BYTES` (lowered here to 0) keeps
+    its result; a later call of the same shapes writes into one the caller has dropped, never
+    into one still held or viewed, and every result equals the call with nothing kept (the
+    switch program for grey stacks, the host-chosen solve for colour, dropping samples or
+    not). `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing; `release_batch_outputs` lets go."""
+    from jaxps.ps import _kept, _photometric_stereo
+
+    monkeypatch.setattr(_photometric_stereo, "_KEEP_FROM_BYTES", 0)
+    monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
+    scene = face_scene(32, noise=0.01)
+    images = np.asarray(scene.images, np.float32)
+    if colour:
+        images = images[..., None] * np.float32([1.0, 0.8, 0.6])
+    stacks = [images * s for s in (1.0, 0.8, 0.6, 0.5, 0.4)]
+    shadow = float(np.percentile(images[:, np.asarray(scene.mask)], 10))
+
+    def solve(i):  # the last stack drops samples: the weighted solve
+        return jaxps.photometric_stereo(stacks[i], scene.lights, mask=scene.mask,
+                                        shadow_threshold=shadow if i == 4 else None)
+
+    monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
+    expected = [[np.array(a) for a in solve(i)[:5]] for i in range(len(stacks))]
+    assert _kept._SINGLE == []
+    monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES")
+    assert (expected[4][3] < expected[0][3].max()).any()  # samples dropped
+
+    def check(res, i):
+        for name, got, want in zip(jaxps.PSResult._fields, res[:5], expected[i]):
+            np.testing.assert_array_equal(got, want, err_msg=f"stack {i}: {name}")
+
+    jaxps.release_batch_outputs()
+    first = solve(0)
+    pointer = first.normals.unsafe_buffer_pointer()
+    second = solve(1)  # `first` is held: fresh buffers
+    assert second.normals.unsafe_buffer_pointer() != pointer
+    del first
+    third = solve(2)  # into the buffers of `first`
+    assert third.normals.unsafe_buffer_pointer() == pointer
+    view = np.asarray(second.albedo)
+    pointers = {second.normals.unsafe_buffer_pointer(), third.normals.unsafe_buffer_pointer()}
+    del second
+    fourth = solve(3)
+    assert fourth.normals.unsafe_buffer_pointer() not in pointers
+    np.testing.assert_array_equal(view, expected[1][1])
+    pointer = third.normals.unsafe_buffer_pointer()
+    del third
+    fifth = solve(4)
+    assert fifth.normals.unsafe_buffer_pointer() == pointer
+    for res, i in ((fourth, 3), (fifth, 4)):
+        check(res, i)
+    assert len(_kept._SINGLE) == 2
+    jaxps.release_batch_outputs()
+    assert _kept._SINGLE == []
+    monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
+    check(solve(4), 4)
+    assert _kept._SINGLE == []

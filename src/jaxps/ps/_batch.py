@@ -15,9 +15,6 @@ checks and the solve with one progress bar and a summary table.
 from __future__ import annotations
 
 import functools
-import os
-import sys
-import threading
 from collections.abc import Sequence
 
 import jax
@@ -34,6 +31,18 @@ from ..core._host import (
     fill_on_threads,
 )
 from ..lights._directions import validate_lights
+from ._kept import (
+    _BATCH,
+    _LOCK,
+    _SCRATCH,
+    _STAGE,
+    ONLY_HELD_HERE,
+    keep,
+    keep_bytes,
+    refcounts,
+    release_batch_outputs,
+    spare_outputs,
+)
 from ._l2 import PSResult, branch_of, host_constants, l2_batch_flags, l2_batch_solve
 from ._photometric_stereo import (
     _BANDED_SOLVERS,
@@ -54,78 +63,6 @@ _PIXELS_PER_PROGRAM = 1 << 24
 # Options of the L2 solve that `_l2_one_image` handles; any other goes the general way.
 _L2_OPTIONS = frozenset({"shadow_threshold", "saturation", "dark_threshold"})
 
-# The outputs of the latest L2 batches (newest first), whose buffers a later batch of the same
-# shapes writes into once the caller has let go of them (`_spare_outputs`). glibc keeps freed
-# blocks under 32 MiB for reuse, which is why single calls at 1 MP write to memory the process
-# already holds; a batch's `(N, ...)` outputs are larger, so glibc maps and zeroes fresh pages
-# for every batch (docs/speed_history.md, "Why the time per pixel grows"). Two entries: in
-# `res = photometric_stereo_batch(...)` in a loop, `res` still holds the previous result while
-# the next batch runs, so the one before it is the one free.
-_SPARE: list[tuple] = []
-_SPARE_ENTRIES = 2
-# The aligned copy of the latest unaligned numpy stack (`_staged`), for the next one's copy.
-_STAGE: list[np.ndarray] = []
-# The weighted solve's packed planes of the latest chunk that took it (`l2_batch_solve`'s
-# `scratch`), with the `(shape, dtype)` of its stack: internal, never returned to a caller.
-_SCRATCH: list[tuple] = []
-_SPARE_LOCK = threading.Lock()
-_KEEP_DEFAULT = 1 << 30
-
-
-def _keep_bytes() -> int:
-    """Bytes kept for reuse (the latest batch results together; the aligned copy of a numpy
-    stack on its own): `$JAXPS_BATCH_KEEP_BYTES`, default 1 GiB."""
-    value = os.environ.get("JAXPS_BATCH_KEEP_BYTES", "")
-    try:
-        keep = _KEEP_DEFAULT if value == "" else max(int(value), 0)
-    except ValueError:
-        raise ValueError("JAXPS_BATCH_KEEP_BYTES must be a whole number of bytes (0 keeps "
-                         f"none), got {value!r}") from None
-    return keep if _REFCOUNTS_EXACT else 0
-
-
-def _refcounts(arrays):
-    return [sys.getrefcount(arrays[i]) for i in range(len(arrays))]
-
-
-# What `_refcounts` gives for an object that only its tuple (or list) holds (measured, not assumed:
-# interpreters differ in the references a call keeps). A free-threaded interpreter counts
-# references lazily, so there nothing is reused (`_keep_bytes` gives 0).
-_ONLY_HELD_HERE = _refcounts((object(),))[0]
-_REFCOUNTS_EXACT = getattr(sys, "_is_gil_enabled", lambda: True)()
-
-
-def _spare_outputs(specs):
-    """The five arrays of a kept batch result with the `(shape, dtype)`s `specs`, taken out of
-    `_SPARE`, when nothing outside it refers to any of them any more (so donating them cannot
-    change anything the caller sees); else None. A numpy view of an array (`np.asarray`)
-    refers to it through a memoryview, so it counts as held. Should a buffer still have an
-    outside reference, XLA declines its donation and writes a fresh one."""
-    with _SPARE_LOCK:
-        for i, arrays in enumerate(_SPARE):
-            if [(a.shape, a.dtype) for a in arrays] != specs:
-                continue
-            if any(a.is_deleted() for a in arrays):  # donated by the caller (`out=`)
-                continue
-            if max(_refcounts(arrays)) <= _ONLY_HELD_HERE:
-                return _SPARE.pop(i)
-    return None
-
-
-def _keep(arrays, budget):
-    """Keep a new batch result's arrays for reuse, newest first, within `budget` bytes
-    (`_keep_bytes()`; with 0, nothing is kept and what was is let go)."""
-    with _SPARE_LOCK:
-        _SPARE.insert(0, tuple(arrays))
-        kept, total = [], 0
-        for entry in _SPARE[:_SPARE_ENTRIES]:
-            size = sum(a.nbytes for a in entry)
-            if total + size <= budget and not any(a.is_deleted() for a in entry):
-                kept.append(entry)
-                total += size
-        _SPARE[:] = kept
-
-
 def _staged(images, threads, budget):
     """An unaligned host stack copied into 64-byte-aligned memory (XLA-CPU reads that in
     place), on `threads` threads: into the buffer of the previous such copy when it has the
@@ -139,14 +76,14 @@ def _staged(images, threads, budget):
         return images, None
     buffer = None
     if budget >= images.nbytes:
-        with _SPARE_LOCK:
+        with _LOCK:
             if (_STAGE and _STAGE[0].shape == images.shape and _STAGE[0].dtype == images.dtype
-                    and max(_refcounts(_STAGE)) <= _ONLY_HELD_HERE):
+                    and max(refcounts(_STAGE)) <= ONLY_HELD_HERE):
                 buffer = _STAGE.pop()
         if buffer is None:
             buffer = aligned_empty(images.shape, images.dtype)
     else:  # not to be kept: let go of what was
-        with _SPARE_LOCK:
+        with _LOCK:
             _STAGE.clear()
     copy = aligned(images, threads=threads, out=buffer)
     return copy, buffer
@@ -154,13 +91,13 @@ def _staged(images, threads, budget):
 
 def _unstage(buffer, budget):
     """Keep `buffer` (from `_staged`) for the next copy, within `budget` bytes."""
-    with _SPARE_LOCK:
+    with _LOCK:
         _STAGE[:] = [buffer] if buffer.nbytes <= budget else []
 
 
 def _take_scratch(key):
     """The kept packed planes of a stack with `key` (`(shape, dtype)`), taken out; else None."""
-    with _SPARE_LOCK:
+    with _LOCK:
         if _SCRATCH and _SCRATCH[0][0] == key:
             return _SCRATCH.pop()[1]
     return None
@@ -169,26 +106,9 @@ def _take_scratch(key):
 def _keep_scratch(key, planes, budget):
     """Keep `planes` (None: nothing to keep) for the next weighted chunk of a stack with `key`,
     within `budget` bytes."""
-    with _SPARE_LOCK:
+    with _LOCK:
         _SCRATCH[:] = ([(key, planes)] if planes is not None
                        and sum(a.nbytes for a in planes) <= budget else [])
-
-
-def release_batch_outputs() -> None:
-    """Let go of the batch outputs that `photometric_stereo_batch` keeps for reuse.
-
-    An L2 batch on one device keeps its latest two results (up to `$JAXPS_BATCH_KEEP_BYTES`,
-    default 1 GiB; `0` keeps none) so that the next batches of the same shapes write into their
-    buffers once the caller has dropped them, instead of into fresh memory, which costs a page
-    fault per 4 KiB (docs/speed.md, "Many captures"). A result the caller still holds is never
-    written to. It also keeps the aligned copy of the latest unaligned numpy stack, and the
-    weighted solve's intermediate planes of the latest batch that dropped samples (each when
-    within the same number of bytes), for the next batch. This frees what is kept, e.g. at the
-    end of a stream of large batches."""
-    with _SPARE_LOCK:
-        _SPARE.clear()
-        _STAGE.clear()
-        _SCRATCH.clear()
 
 
 def _stack_captures(images):
@@ -315,7 +235,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
     def to_device(a):
         return jax.device_put(aligned(a, threads=threads) if threads else a)
 
-    budget = _keep_bytes()  # bytes kept for the next batch (read once per call)
+    budget = keep_bytes()  # bytes kept for the next batch (read once per call)
     staging = None  # the aligned copy of a whole unaligned numpy stack, kept for the next
 
     def solve(sl, into=None):
@@ -352,8 +272,8 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
 
     fresh = out is None
     if fresh and budget > 0:  # an earlier batch's buffers, if its caller dropped them
-        out = _spare_outputs([(s, np.dtype(d)) for s, d in
-                              _l2_output_specs(n, tuple(images.shape[2:]), dtype)])
+        out = spare_outputs(_BATCH, [(s, np.dtype(d)) for s, d in
+                                     _l2_output_specs(n, tuple(images.shape[2:]), dtype)])
     if step >= n:
         result = PSResult(*solve(slice(0, n), out))
     else:
@@ -363,7 +283,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
             out = _write_block(out, start, solve(slice(start, min(start + step, n))))
         result = PSResult(*out)
     if fresh:
-        _keep(result[:5], budget)
+        keep(_BATCH, result[:5], budget)
     if staging is not None:  # the solve reads it: wait for it, then the next copy may reuse it
         jax.block_until_ready(result)
         _unstage(staging, budget)

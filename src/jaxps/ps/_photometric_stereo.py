@@ -27,6 +27,7 @@ from ..core._host import (
 from ..core._store import active as store_active
 from ..core._store import call as stored_call
 from ..lights._directions import validate_lights
+from ._kept import _SINGLE, keep, keep_bytes, spare_outputs
 from ._l2 import PSResult, host_constants, l2_branch
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
@@ -133,6 +134,11 @@ def photometric_stereo(
     waits for one read of its flags and then compiles (or loads) and runs only the solve it
     needs (per-pixel lights always take the weighted solve). Inside a trace the choice is a
     `lax.cond` in the caller's program (docs/photometric_stereo.md, "How it is built").
+    Such a call whose normals take more than 32 MiB (about 2.8 MP in float32) keeps its result,
+    and a later call of the same shapes writes into one of the two latest once nothing else
+    refers to it (not even a numpy view), instead of into fresh memory, which costs a page
+    fault per 4 KiB; `$JAXPS_BATCH_KEEP_BYTES` bounds what is kept (default 1 GiB, `0`
+    keeps none) and `jaxps.release_batch_outputs()` lets go of it.
     For `"irls"` and `"sbl"`, such a call on a multi-core CPU solves bands of rows on threads
     of their own (one per core, at least 16384 pixels each) and returns once all are done;
     the results are those of one call.
@@ -210,6 +216,10 @@ def photometric_stereo(
         run = _run.__wrapped__
     if run is not _run:
         images = to_device(images)  # the eager solvers take device arrays
+    elif (branch is not None and not store_active()
+          and h * w * 3 * images.dtype.itemsize > _KEEP_FROM_BYTES):  # a top-level L2 call
+        return _into_kept_result(branch, images, lights, mask, sample_mask, thresholds,
+                                 dynamic, method=method, static=static)
     elif branch in ("switch", "all_used"):
         run = _run_older_emitters
     elif method in _BANDED_SOLVERS and not dynamic:
@@ -326,3 +336,40 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
 # ones on grey stacks, every sample used or 5% dropped (`benchmarks/bench_l2_switch.py`).
 _run_older_emitters = CpuTuned(_run.__wrapped__, OLDER_EMITTERS,
                                static_argnames=("method", "static"))
+
+
+def _run_into(out, *args, **kwargs):
+    del out  # donated: XLA writes each output into its buffer (`keep_unused` keeps it)
+    return _run.__wrapped__(*args, **kwargs)
+
+
+_run_older_emitters_into = CpuTuned(_run_into, OLDER_EMITTERS, static_argnames=("method", "static"),
+                                    donate_argnums=0, keep_unused=True)
+_run_into_out = jax.jit(_run_into, static_argnames=("method", "static"), donate_argnums=0,
+                        keep_unused=True)
+# A top-level L2 call whose normals take more bytes than this writes into a kept result
+# (`_into_kept_result`): glibc maps blocks above its mmap threshold, which rises to 32 MiB at
+# most, afresh on every call, and the first write to each 4 KiB page is a page fault.
+_KEEP_FROM_BYTES = 32 << 20
+
+
+def _into_kept_result(branch, images, lights, mask, sample_mask, thresholds, dynamic, **static):
+    """A top-level L2 call on the CPU whose solve `branch` was chosen (arguments as `_run`
+    takes them), written into the buffers of one of the two latest such results of the same
+    shapes once its caller has let go of it (`_kept.spare_outputs`), else into fresh memory;
+    the result is kept in turn, within `$JAXPS_BATCH_KEEP_BYTES`. At 4096x4096, K=5 this took
+    5.6 against 10.4 ns a pixel (docs/speed.md, "Why the time per pixel grows")."""
+    h, w = images.shape[1:3]
+    dtype = np.dtype(images.dtype)
+    specs = [((h, w, 3), dtype), ((h, w, *images.shape[3:]), dtype),
+             ((h, w), np.dtype(np.int32)), ((h, w), np.dtype(np.int32)), ((h, w), dtype)]
+    budget = keep_bytes()
+    out = spare_outputs(_SINGLE, specs) if budget else None
+    args = (images, lights, mask, sample_mask, thresholds, dynamic)
+    if branch in ("switch", "all_used"):  # as `photometric_stereo` runs them
+        run, run_into = _run_older_emitters, _run_older_emitters_into
+    else:
+        run, run_into = _run, _run_into_out
+    res = run(*args, **static) if out is None else run_into(out, *args, **static)
+    keep(_SINGLE, res[:5], budget)
+    return res
