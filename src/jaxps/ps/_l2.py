@@ -693,8 +693,9 @@ _BATCH_PROGRAMS = {
 }
 # The weighted solve in two programs: the packed planes are outputs of the first, so they can
 # be written into kept buffers (`scratch`). Inside one program (a `cond` keeps XLA from
-# unpacking them, `_solve_weighted`) they were temporaries, fresh memory for every batch at 8 x
-# 1 MP: 160 MB, 40,961 page faults (docs/speed.md, "Many captures").
+# unpacking them, `_solve_weighted`) they were temporaries, fresh memory for every batch: at
+# 8 x 1 MP 2 x 84 MB, 40,961 page faults, and 0.75x of single calls against 0.97-1.02x now
+# (`benchmarks/bench_batch.py`; docs/speed.md, "Many captures").
 _BATCH_WEIGHTED = (
     CpuTuned(_batch_planes, OLDER_EMITTERS, static_argnames="branch", **_INTO),
     CpuTuned(_batch_unpack, OLDER_EMITTERS, static_argnames=("channels", "dtype"), **_INTO),

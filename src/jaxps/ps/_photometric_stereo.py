@@ -357,8 +357,9 @@ def _into_kept_result(branch, images, lights, mask, sample_mask, thresholds, dyn
     """A top-level L2 call on the CPU whose solve `branch` was chosen (arguments as `_run`
     takes them), written into the buffers of one of the two latest such results of the same
     shapes once its caller has let go of it (`_kept.spare_outputs`), else into fresh memory;
-    the result is kept in turn, within `$JAXPS_BATCH_KEEP_BYTES`. At 4096x4096, K=5 this took
-    5.6 against 10.4 ns a pixel (docs/speed.md, "Why the time per pixel grows")."""
+    the result is kept in turn, within `$JAXPS_BATCH_KEEP_BYTES`. At 4096x4096, K=5 a call
+    took 5.7-6.2 against 10.0-10.1 ns a pixel with nothing kept (`benchmarks/bench_core.py`;
+    docs/speed.md, "Why the time per pixel grows")."""
     h, w = images.shape[1:3]
     dtype = np.dtype(images.dtype)
     specs = [((h, w, 3), dtype), ((h, w, *images.shape[3:]), dtype),
