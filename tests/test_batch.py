@@ -282,8 +282,8 @@ def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
 def test_batch_l2_weighted_writes_its_planes_into_kept_buffers(colour, monkeypatch):
     """A batch that drops samples solves in two programs; the first one's packed planes are
     kept and the next such batch of that shape writes into them, in one program, with `out=`
-    (all five outputs in place) and in chunks. Every result equals the same batch computed
-    with nothing kept, to the bit; `JAXPS_BATCH_KEEP_BYTES=0` keeps no planes."""
+    (all five outputs in place) and in chunks of two sizes. Every result equals the same batch
+    computed with nothing kept, to the bit; `JAXPS_BATCH_KEEP_BYTES=0` keeps no planes."""
     from jaxps.ps import _batch
 
     monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
@@ -324,7 +324,15 @@ def test_batch_l2_weighted_writes_its_planes_into_kept_buffers(colour, monkeypat
     assert [a.unsafe_buffer_pointer() for a in third[:5]] == pointers
     assert planes() == kept
     check(third, 2)
-    check(batch(3, chunk=2), 3)  # chunks of 2 and 1: planes of their own shapes
+    check(batch(3, chunk=2), 3)  # chunks of 2 and 1: planes of their own shapes, both kept
+
+    def all_planes():
+        return sorted(a.unsafe_buffer_pointer() for _, planes in _batch._SCRATCH for a in planes)
+
+    assert len(_batch._SCRATCH) == 2
+    chunked = all_planes()
+    check(batch(2, chunk=2), 2)
+    assert all_planes() == chunked
     check(batch(3), 3)
     monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
     check(batch(3), 3)

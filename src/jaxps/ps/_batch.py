@@ -96,19 +96,29 @@ def _unstage(buffer, budget):
 
 
 def _take_scratch(key):
-    """The kept packed planes of a stack with `key` (`(shape, dtype)`), taken out; else None."""
+    """Kept packed planes of a chunk with `key` (its stack's `(shape, dtype)`), taken out;
+    else None."""
     with _LOCK:
-        if _SCRATCH and _SCRATCH[0][0] == key:
-            return _SCRATCH.pop()[1]
+        for i, (k, planes) in enumerate(_SCRATCH):
+            if k == key:
+                del _SCRATCH[i]
+                return planes
     return None
 
 
 def _keep_scratch(key, planes, budget):
-    """Keep `planes` (None: nothing to keep) for the next weighted chunk of a stack with `key`,
-    within `budget` bytes."""
+    """Keep a chunk's packed `planes` for the next chunk of its shape, newest first: two
+    entries, since a batch's last chunk may be smaller than the others, within `budget` bytes
+    together."""
     with _LOCK:
-        _SCRATCH[:] = ([(key, planes)] if planes is not None
-                       and sum(a.nbytes for a in planes) <= budget else [])
+        _SCRATCH.insert(0, (key, planes))
+        kept, total = [], 0
+        for entry in _SCRATCH[:2]:
+            size = sum(a.nbytes for a in entry[1])
+            if total + size <= budget:
+                kept.append(entry)
+                total += size
+        _SCRATCH[:] = kept
 
 
 def _stack_captures(images):

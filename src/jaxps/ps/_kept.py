@@ -32,8 +32,9 @@ _SINGLE: list[tuple] = []
 _ENTRIES = 2
 # The aligned copy of the latest unaligned numpy stack of a batch (`_batch._staged`).
 _STAGE: list[np.ndarray] = []
-# The weighted batch solve's packed planes of the latest chunk that took it
-# (`l2_batch_solve`'s `scratch`), with the `(shape, dtype)` of its stack: never returned.
+# The weighted batch solve's packed planes of the latest two chunks that took it, of different
+# shapes (`l2_batch_solve`'s `scratch`), each with the `(shape, dtype)` of its stack: never
+# returned to a caller.
 _SCRATCH: list[tuple] = []
 _LOCK = threading.Lock()
 _KEEP_DEFAULT = 1 << 30

@@ -646,7 +646,8 @@ def l2_batch_flags(images, mask, sample_mask, thresholds):
 
 
 def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, dtype):
-    """The every-sample-used solve of a stack (`l2_batch_solve`), in one program."""
+    """The every-sample-used solve of a stack (`l2_batch_solve`), in one program; `lights`
+    is unused (their constants are in `shared`), taken so that both solves share arguments."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
     res = _solve_all_used(images, mask, sample_mask, thresholds,
