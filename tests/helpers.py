@@ -22,3 +22,39 @@ def sphere_scene(h=96, lights=None):
     surface = jaxps.synthetic.sphere(h, max_zenith_deg=60.0)
     lights = jaxps.synthetic.scanner_lights(20.0) if lights is None else lights
     return jaxps.synthetic.render_scene(surface, lights)
+
+
+def assert_results_equal(res, want, label=""):
+    """The five arrays of a `PSResult` equal `want`'s, to the bit."""
+    for name, got, expected in zip(jaxps.PSResult._fields, res[:5], want):
+        np.testing.assert_array_equal(got, expected, err_msg=f"{label}: {name}")
+
+
+def assert_reuses_dropped_results(solve, expected, last=None):
+    """The reuse of kept results (`ps/_kept.py`), for `solve(i, **kw)` of five stacks with
+    `expected` arrays: a result still held is never written, one dropped is (its normals'
+    buffer is reused), and one of which a numpy view is left is not; every result equals
+    `expected`. `last`: keyword arguments of the fifth call. Returns the fourth and fifth."""
+    jaxps.release_batch_outputs()
+    first = solve(0)
+    pointer = first.normals.unsafe_buffer_pointer()
+    second = solve(1)  # `first` is held: fresh buffers
+    assert second.normals.unsafe_buffer_pointer() != pointer
+    del first
+    third = solve(2)  # into the buffers of `first`, which nothing else holds
+    assert third.normals.unsafe_buffer_pointer() == pointer
+    assert_results_equal(second, expected[1], "stack 1")
+    assert_results_equal(third, expected[2], "stack 2")
+    view = np.asarray(second.albedo)  # holds `second.albedo` (through a memoryview)
+    pointers = {second.normals.unsafe_buffer_pointer(), third.normals.unsafe_buffer_pointer()}
+    del second
+    fourth = solve(3)
+    assert fourth.normals.unsafe_buffer_pointer() not in pointers
+    np.testing.assert_array_equal(view, expected[1][1])
+    pointer = third.normals.unsafe_buffer_pointer()
+    del third
+    fifth = solve(4, **(last or {}))  # into the dropped `third`
+    assert fifth.normals.unsafe_buffer_pointer() == pointer
+    assert_results_equal(fourth, expected[3], "stack 3")
+    assert_results_equal(fifth, expected[4], "stack 4")
+    return fourth, fifth

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import jaxps
-from helpers import face_scene
+from helpers import assert_results_equal, assert_reuses_dropped_results, face_scene
 
 
 def _captures(n=3, h=32):
@@ -238,31 +238,9 @@ def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
     expected = [[np.array(a) for a in batch(i)[:5]] for i in range(len(stacks))]
 
     def check(res, i):
-        for name, got, want in zip(jaxps.PSResult._fields, res[:5], expected[i]):
-            np.testing.assert_array_equal(got, want, err_msg=f"stack {i}: {name}")
+        assert_results_equal(res, expected[i], f"stack {i}")
 
-    _batch.release_batch_outputs()
-    first = batch(0)
-    pointer = first.normals.unsafe_buffer_pointer()
-    second = batch(1)  # `first` is held: fresh buffers
-    assert second.normals.unsafe_buffer_pointer() != pointer
-    del first
-    third = batch(2)  # into the buffers of `first`, which nothing else holds
-    assert third.normals.unsafe_buffer_pointer() == pointer
-    check(second, 1)
-    check(third, 2)
-    view = np.asarray(second.albedo)  # holds `second.albedo` (through a memoryview)
-    pointers = {second.normals.unsafe_buffer_pointer(), third.normals.unsafe_buffer_pointer()}
-    del second
-    fourth = batch(3)
-    assert fourth.normals.unsafe_buffer_pointer() not in pointers
-    np.testing.assert_array_equal(view, expected[1][1])
-    pointer = third.normals.unsafe_buffer_pointer()
-    del third
-    fifth = batch(4, chunk=2)  # chunks written into the dropped `third`
-    assert fifth.normals.unsafe_buffer_pointer() == pointer
-    check(fourth, 3)
-    check(fifth, 4)
+    assert_reuses_dropped_results(batch, expected, last={"chunk": 2})  # chunks: into `third`
 
     with monkeypatch.context() as m:  # a free-threaded interpreter: nothing kept
         m.setattr(_kept, "_REFCOUNTS_EXACT", False)
@@ -305,8 +283,7 @@ def test_batch_l2_weighted_writes_its_planes_into_kept_buffers(colour, monkeypat
     assert (expected[0][3] < 5).any() and (expected[0][3] == 5).any()  # some dropped
 
     def check(res, i):
-        for name, got, want in zip(jaxps.PSResult._fields, res[:5], expected[i]):
-            np.testing.assert_array_equal(got, want, err_msg=f"stack {i}: {name}")
+        assert_results_equal(res, expected[i], f"stack {i}")
 
     def planes():
         return [a.unsafe_buffer_pointer() for a in _batch._SCRATCH[0][1]]

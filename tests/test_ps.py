@@ -2,7 +2,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import face_scene, sphere_scene
+from helpers import (
+    assert_results_equal,
+    assert_reuses_dropped_results,
+    face_scene,
+    sphere_scene,
+)
 
 import jaxps
 from jaxps import Status
@@ -437,33 +442,10 @@ def test_large_single_calls_write_into_a_result_the_caller_dropped(colour, monke
     monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES")
     assert (expected[4][3] < expected[0][3].max()).any()  # samples dropped
 
-    def check(res, i):
-        for name, got, want in zip(jaxps.PSResult._fields, res[:5], expected[i]):
-            np.testing.assert_array_equal(got, want, err_msg=f"stack {i}: {name}")
-
-    jaxps.release_batch_outputs()
-    first = solve(0)
-    pointer = first.normals.unsafe_buffer_pointer()
-    second = solve(1)  # `first` is held: fresh buffers
-    assert second.normals.unsafe_buffer_pointer() != pointer
-    del first
-    third = solve(2)  # into the buffers of `first`
-    assert third.normals.unsafe_buffer_pointer() == pointer
-    view = np.asarray(second.albedo)
-    pointers = {second.normals.unsafe_buffer_pointer(), third.normals.unsafe_buffer_pointer()}
-    del second
-    fourth = solve(3)
-    assert fourth.normals.unsafe_buffer_pointer() not in pointers
-    np.testing.assert_array_equal(view, expected[1][1])
-    pointer = third.normals.unsafe_buffer_pointer()
-    del third
-    fifth = solve(4)
-    assert fifth.normals.unsafe_buffer_pointer() == pointer
-    for res, i in ((fourth, 3), (fifth, 4)):
-        check(res, i)
+    assert_reuses_dropped_results(solve, expected)  # the fifth, dropping samples
     assert len(_kept._SINGLE) == 2
     jaxps.release_batch_outputs()
     assert _kept._SINGLE == []
     monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
-    check(solve(4), 4)
+    assert_results_equal(solve(4), expected[4], "stack 4")
     assert _kept._SINGLE == []
