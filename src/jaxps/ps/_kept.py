@@ -1,5 +1,6 @@
-"""Large L2 results kept for reuse: a later call of the same shapes writes into the buffers of
-one the caller has let go of, instead of into fresh memory.
+"""Memory that large L2 calls keep for reuse: results (a later call of the same shapes writes
+into the buffers of one the caller has let go of, instead of into fresh memory), a batch's
+aligned copy of its stack and the weighted batch solve's intermediate planes.
 
 XLA-CPU allocates each call's outputs with `malloc`. glibc serves a block larger than its
 mmap threshold (which rises to at most 32 MiB) with a fresh `mmap` and unmaps it on `free`,
@@ -53,6 +54,8 @@ def keep_bytes() -> int:
 
 
 def refcounts(arrays) -> list[int]:
+    """`sys.getrefcount` of each item of a tuple or list (indexed, so that no loop variable
+    adds a reference of its own)."""
     return [sys.getrefcount(arrays[i]) for i in range(len(arrays))]
 
 
