@@ -41,6 +41,7 @@ from ._kept import (
     keep_bytes,
     refcounts,
     release_batch_outputs,
+    result_specs,
     spare_outputs,
 )
 from ._l2 import PSResult, branch_of, host_constants, l2_batch_flags, l2_batch_solve
@@ -93,32 +94,6 @@ def _unstage(buffer, budget):
     """Keep `buffer` (from `_staged`) for the next copy, within `budget` bytes."""
     with _LOCK:
         _STAGE[:] = [buffer] if buffer.nbytes <= budget else []
-
-
-def _take_scratch(key):
-    """Kept packed planes of a chunk with `key` (its stack's `(shape, dtype)`), taken out;
-    else None."""
-    with _LOCK:
-        for i, (k, planes) in enumerate(_SCRATCH):
-            if k == key:
-                del _SCRATCH[i]
-                return planes
-    return None
-
-
-def _keep_scratch(key, planes, budget):
-    """Keep a chunk's packed `planes` for the next chunk of its shape, newest first: two
-    entries, since a batch's last chunk may be smaller than the others, within `budget` bytes
-    together."""
-    with _LOCK:
-        _SCRATCH.insert(0, (key, planes))
-        kept, total = [], 0
-        for entry in _SCRATCH[:2]:
-            size = sum(a.nbytes for a in entry[1])
-            if total + size <= budget:
-                kept.append(entry)
-                total += size
-        _SCRATCH[:] = kept
 
 
 def _stack_captures(images):
@@ -185,18 +160,10 @@ def _batched_fn(method, options, shared_lights, shared_mask, vmap_size):
     return fn
 
 
-def _l2_output_specs(n, shape, dtype):
-    """`(shape, dtype)` of the five `(N, ...)` outputs of an L2 batch; `shape` is one capture's
-    `(H, W[, C])`."""
-    h, w = shape[:2]
-    return [((n, h, w, 3), dtype), ((n, *shape), dtype), ((n, h, w), np.int32),
-            ((n, h, w), np.int32), ((n, h, w), dtype)]
-
-
 @functools.partial(jax.jit, static_argnums=(0, 1, 2))
 def _l2_outputs(n, shape, dtype):
-    """Zeroed `(N, ...)` outputs of an L2 batch (`_l2_output_specs`)."""
-    return tuple(jnp.zeros(s, d) for s, d in _l2_output_specs(n, shape, dtype))
+    """Zeroed `(N, ...)` outputs of an L2 batch (`result_specs`)."""
+    return tuple(jnp.zeros(s, d) for s, d in result_specs((n,), shape, dtype))
 
 
 def _check_out(out, n, shape, dtype):
@@ -205,7 +172,7 @@ def _check_out(out, n, shape, dtype):
         raise ValueError(f"out must be the PSResult of an earlier batch, got {type(out).__name__}")
     arrays = tuple(out[:5])
     for name, a, (e_shape, e_dtype) in zip(PSResult._fields, arrays,
-                                           _l2_output_specs(n, shape, dtype)):
+                                           result_specs((n,), shape, dtype)):
         if not isinstance(a, jax.Array) or a.shape != e_shape or a.dtype != e_dtype:
             got = f"{getattr(a, 'shape', None)} {getattr(a, 'dtype', type(a).__name__)}"
             raise ValueError(f"out.{name} must be a JAX array {e_shape} {np.dtype(e_dtype)} to "
@@ -272,18 +239,18 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
         lt = jax.device_put(part(lights, not shared_lights).astype(solve_dtype))
         cst = jax.device_put(tuple(part(c, not shared_lights) for c in consts))
         flags = np.asarray(l2_batch_flags(x, msk, smask, thresholds))
-        key = (x.shape, x.dtype)
+        key = (x.shape, x.dtype)  # of the weighted solve's packed planes
         res, planes = l2_batch_solve(x, lt, msk, smask, thresholds, cst, dtype=dtype, out=into,
                                      branch=branch_of(int(np.bitwise_or.reduce(flags))),
-                                     scratch=_take_scratch(key) if budget else None)
+                                     scratch=spare_outputs(_SCRATCH, key) if budget else None)
         if planes is not None:
-            _keep_scratch(key, planes, budget)
+            keep(_SCRATCH, key, planes, budget)
         return res
 
     fresh = out is None
+    specs = result_specs((n,), tuple(images.shape[2:]), dtype)
     if fresh and budget > 0:  # an earlier batch's buffers, if its caller dropped them
-        out = spare_outputs(_BATCH, [(s, np.dtype(d)) for s, d in
-                                     _l2_output_specs(n, tuple(images.shape[2:]), dtype)])
+        out = spare_outputs(_BATCH, specs)
     if step >= n:
         result = PSResult(*solve(slice(0, n), out))
     else:
@@ -293,7 +260,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
             out = _write_block(out, start, solve(slice(start, min(start + step, n))))
         result = PSResult(*out)
     if fresh:
-        keep(_BATCH, result[:5], budget)
+        keep(_BATCH, specs, result[:5], budget)
     if staging is not None:  # the solve reads it: wait for it, then the next copy may reuse it
         jax.block_until_ready(result)
         _unstage(staging, budget)
@@ -374,8 +341,9 @@ def photometric_stereo_batch(
       (no reference left, numpy views included; a result still held is never written), so a
       loop `res = photometric_stereo_batch(...)` gets this without `out`. What is kept is
       bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB, `0` keeps nothing; nothing is
-      kept on a free-threaded Python) and let go by `jaxps.ps.release_batch_outputs()`. A numpy stack that is not 64-byte aligned (as
-      `np.stack` makes them) is copied into aligned memory, which XLA-CPU reads in place:
+      kept on a free-threaded Python) and let go by `jaxps.ps.release_batch_outputs()`. A
+      numpy stack that is not 64-byte aligned (as `np.stack` makes them) is copied into
+      aligned memory, which XLA-CPU reads in place:
       into the previous such copy's buffer when it fits, and such a call waits for its
       results before it returns, so that the buffer is free for the next.
 

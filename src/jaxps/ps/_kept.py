@@ -22,20 +22,22 @@ import threading
 
 import numpy as np
 
-__all__ = ["keep", "keep_bytes", "release_batch_outputs", "spare_outputs"]
+__all__ = [
+    "keep", "keep_bytes", "release_batch_outputs", "result_specs", "spare_outputs",
+]
 
-# Results kept, newest first: of L2 batches (`photometric_stereo_batch`), and of single calls
-# whose normals alone exceed glibc's largest mmap threshold (`photometric_stereo`). Two
-# entries each: in `res = photometric_stereo(...)` in a loop, `res` still holds the previous
+# Entries `(key, arrays)`, newest first (`keep`, `spare_outputs`). Results, keyed by their
+# `result_specs`: of L2 batches (`photometric_stereo_batch`), and of single calls whose normals
+# alone exceed glibc's largest mmap threshold (`photometric_stereo`). Two entries each: in `res = photometric_stereo(...)` in a loop, `res` still holds the previous
 # result while the next call runs, so the one before it is the one free.
 _BATCH: list[tuple] = []
 _SINGLE: list[tuple] = []
 _ENTRIES = 2
 # The aligned copy of the latest unaligned numpy stack of a batch (`_batch._staged`).
 _STAGE: list[np.ndarray] = []
-# The weighted batch solve's packed planes of the latest two chunks that took it, of different
-# shapes (`l2_batch_solve`'s `scratch`), each with the `(shape, dtype)` of its stack: never
-# returned to a caller.
+# The weighted batch solve's packed planes of the latest two chunks that took it
+# (`l2_batch_solve`'s `scratch`), keyed by the `(shape, dtype)` of the chunk's stack, since a
+# batch's last chunk may be smaller than the others: never returned to a caller.
 _SCRATCH: list[tuple] = []
 _LOCK = threading.Lock()
 _KEEP_DEFAULT = 1 << 30
@@ -65,31 +67,39 @@ ONLY_HELD_HERE = refcounts((object(),))[0]
 _REFCOUNTS_EXACT = getattr(sys, "_is_gil_enabled", lambda: True)()
 
 
-def spare_outputs(kept: list, specs: list) -> tuple | None:
-    """The arrays of a result in `kept` with the `(shape, dtype)`s `specs`, taken out of it,
-    when nothing outside it refers to any of them any more (so donating them cannot change
-    anything the caller sees); else None. Should a buffer still have an outside reference,
-    XLA declines its donation and writes a fresh one."""
+def result_specs(lead: tuple, shape: tuple, dtype) -> tuple:
+    """`(shape, dtype)` of the five arrays of an L2 result (a `PSResult`'s), with leading axes
+    `lead` (`()` for one capture, `(N,)` for a batch); `shape` is one capture's `(H, W[, C])`
+    and `dtype` that of its normals, albedo and residual."""
+    h, w = shape[:2]
+    dtype, i32 = np.dtype(dtype), np.dtype(np.int32)
+    return (((*lead, h, w, 3), dtype), ((*lead, *shape), dtype), ((*lead, h, w), i32),
+            ((*lead, h, w), i32), ((*lead, h, w), dtype))
+
+
+def spare_outputs(kept: list, key) -> tuple | None:
+    """The arrays of an entry of `kept` with `key` (for results, their `result_specs`), taken
+    out of it, when nothing outside it refers to any of them any more (so donating them
+    cannot change anything the caller sees); else None. Should a buffer still have an outside
+    reference, XLA declines its donation and writes a fresh one."""
     with _LOCK:
-        for i, arrays in enumerate(kept):
-            if [(a.shape, a.dtype) for a in arrays] != specs:
-                continue
-            if any(a.is_deleted() for a in arrays):  # donated by the caller (`out=`)
+        for i, (k, arrays) in enumerate(kept):
+            if k != key or any(a.is_deleted() for a in arrays):  # deleted: donated (`out=`)
                 continue
             if max(refcounts(arrays)) <= ONLY_HELD_HERE:
-                return kept.pop(i)
+                return kept.pop(i)[1]
     return None
 
 
-def keep(kept: list, arrays, budget: int) -> None:
-    """Put a new result's arrays first in `kept`, which holds at most two within `budget`
-    bytes (`keep_bytes()`; with 0, nothing is kept and what was is let go)."""
+def keep(kept: list, key, arrays, budget: int) -> None:
+    """Put `arrays` first in `kept` under `key`; `kept` holds at most two entries within
+    `budget` bytes (`keep_bytes()`; with 0, nothing is kept and what was is let go)."""
     with _LOCK:
-        kept.insert(0, tuple(arrays))
+        kept.insert(0, (key, tuple(arrays)))
         out, total = [], 0
         for entry in kept[:_ENTRIES]:
-            size = sum(a.nbytes for a in entry)
-            if total + size <= budget and not any(a.is_deleted() for a in entry):
+            size = sum(a.nbytes for a in entry[1])
+            if total + size <= budget and not any(a.is_deleted() for a in entry[1]):
                 out.append(entry)
                 total += size
         kept[:] = out

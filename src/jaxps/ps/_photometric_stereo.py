@@ -27,7 +27,7 @@ from ..core._host import (
 from ..core._store import active as store_active
 from ..core._store import call as stored_call
 from ..lights._directions import validate_lights
-from ._kept import _SINGLE, keep, keep_bytes, spare_outputs
+from ._kept import _SINGLE, keep, keep_bytes, result_specs, spare_outputs
 from ._l2 import PSResult, host_constants, l2_branch
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
@@ -360,10 +360,7 @@ def _into_kept_result(branch, images, lights, mask, sample_mask, thresholds, dyn
     the result is kept in turn, within `$JAXPS_BATCH_KEEP_BYTES`. At 4096x4096, K=5 a call
     took 5.7-6.2 against 10.0-10.1 ns a pixel with nothing kept (`benchmarks/bench_core.py`;
     docs/speed.md, "Why the time per pixel grows")."""
-    h, w = images.shape[1:3]
-    dtype = np.dtype(images.dtype)
-    specs = [((h, w, 3), dtype), ((h, w, *images.shape[3:]), dtype),
-             ((h, w), np.dtype(np.int32)), ((h, w), np.dtype(np.int32)), ((h, w), dtype)]
+    specs = result_specs((), images.shape[1:], images.dtype)
     budget = keep_bytes()
     out = spare_outputs(_SINGLE, specs) if budget else None
     args = (images, lights, mask, sample_mask, thresholds, dynamic)
@@ -372,5 +369,5 @@ def _into_kept_result(branch, images, lights, mask, sample_mask, thresholds, dyn
     else:
         run, run_into = _run, _run_into_out
     res = run(*args, **static) if out is None else run_into(out, *args, **static)
-    keep(_SINGLE, res[:5], budget)
+    keep(_SINGLE, specs, res[:5], budget)
     return res
