@@ -53,20 +53,20 @@ def variants(normals, mask):
     @jax.jit
     def fc_one(normals, mask, pixel_size):
         spectrum, _ = integ._fc_spectrum_from_normals(normals, mask, pixel_size)
-        return integ._fc_height(spectrum, mask, shape)
+        return integ._fc_height(spectrum, mask, None, shape)
 
     @jax.jit
     def dct_one(normals, mask, pixel_size):
         spectrum, valid = integ._dct_spectrum_from_normals(normals, mask, None)
-        return integ._dct_height(spectrum, valid, pixel_size, None, shape)[0]
+        return integ._dct_height(spectrum, valid, None, pixel_size, None, shape)
 
     def fc_two():
         return integ._fc_height(integ._fc_spectrum_from_normals(normals, mask, pixel_size)[0], mask,
-                                shape)
+                                None, shape)
 
     def dct_two():
         spectrum, valid = integ._dct_spectrum_from_normals(normals, mask, None)
-        return integ._dct_height(spectrum, valid, pixel_size, None, shape)[0]
+        return integ._dct_height(spectrum, valid, None, pixel_size, None, shape)
 
     return {"fc": {"one program": lambda: fc_one(normals, mask, pixel_size),
                    "two programs": fc_two},

@@ -80,11 +80,11 @@ def main():
         res["fusions"][form] = {"fc_spectrum": n_fc, "dct_spectrum": n_dct}
 
         def fc(spec=fc_spec):
-            return integ._fc_height(spec()[0], mask, (H, W))
+            return integ._fc_height(spec()[0], mask, None, (H, W))
 
         def dct(spec=dct_spec):
             g, valid = spec()
-            return integ._dct_height(g, valid, pixel_size, None, (H, W))[0]
+            return integ._dct_height(g, valid, None, pixel_size, None, (H, W))
 
         calls[f"fc_{form}"], calls[f"dct_{form}"] = fc, dct
     # The two forms against each other, and each against itself: XLA-CPU's FFTs may differ in

@@ -123,3 +123,64 @@ def test_bad_input(normals, kwargs, match):
 def test_normals_from_height_bad_input():
     with pytest.raises(ValueError, match="2-D height map"):
         jaxps.normals_from_height(np.zeros((3, 3, 1), np.float32))
+
+
+K_CAMERA = np.array([[90.0, 0.0, 30.5], [0.0, 95.0, 27.0], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("case", ["fc", "dct", "fc-info", "dct-perspective", "fc-perspective"])
+def test_fft_methods_trace_under_jit_vmap_and_grad(case):
+    """"fc" and "dct" run inside `jit` and `vmap` (nothing counted or checked on the host) and
+    give the heights of the eager call, whose masked mean and valid count are taken on the
+    host; gradients under `jit` equal the eager ones."""
+    method, _, variant = case.partition("-")
+    options = {"method": method}
+    if variant == "perspective":
+        options["intrinsics"] = K_CAMERA
+    info = variant == "info"
+    face = jaxps.synthetic.face_like(56, 64)
+    rng = np.random.default_rng(0)
+    noisy = np.asarray(face.normals) + 0.05 * rng.standard_normal((56, 64, 3))
+    normals = np.stack([face.normals, noisy]).astype(np.float32)
+    normals[0, 3, :5] = np.nan  # left out of the valid count and the mean
+    normals[1, 30, 30] = 0.0
+    masks = np.stack([face.mask, np.ones((56, 64), bool)])
+    masks[1, :, :8] = False
+
+    def height(n, m, pixel_size=0.5):
+        out = jaxps.integrate(n, mask=m, pixel_size=pixel_size, return_info=info, **options)
+        return out.height if info else out
+
+    eager = [np.asarray(height(normals[i], masks[i])) for i in range(2)]
+    for z, n, m in zip(eager, normals, masks):
+        assert np.isfinite(z).all()
+        # mean 0 over the mask (fc), over the mask's valid normals (dct: counted on the host
+        # and taken in the solve's order of pixels)
+        over = m if method == "fc" else m & np.isfinite(n).all(-1) & (np.abs(n).sum(-1) > 0)
+        assert abs(z[over].mean()) < 1e-5 * np.abs(z).max()
+    atol = 2e-5 * max(np.abs(z).max() for z in eager)  # float32 rounding of the other order
+    jitted = jax.jit(height)
+    for i in range(2):
+        np.testing.assert_allclose(jitted(normals[i], masks[i]), eager[i], rtol=1e-5, atol=atol)
+    batched = jax.vmap(height)(jnp.asarray(normals), jnp.asarray(masks))
+    np.testing.assert_allclose(batched, np.stack(eager), rtol=1e-5, atol=atol)
+
+    weights = rng.standard_normal(masks.shape[1:]).astype(np.float32)
+
+    def loss(n, pixel_size):
+        return jnp.sum(weights * height(n, masks[0], pixel_size))
+
+    grads = jax.grad(loss, argnums=(0, 1))(normals[0], 0.5)
+    grads_jit = jax.jit(jax.grad(loss, argnums=(0, 1)))(normals[0], 0.5)
+    for a, b in zip(grads, grads_jit):
+        assert np.isfinite(a).all()
+        np.testing.assert_allclose(b, a, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("method", ["lsq", "bilateral", "auto"])
+def test_host_methods_refuse_a_trace(method):
+    """The grid methods crop to the mask and check their tolerance on the host: inside `jit`
+    they say so, where they would otherwise fail on a tracer."""
+    s = jaxps.synthetic.face_like(24)
+    with pytest.raises(ValueError, match=f"method='{method}'.*outside jit and vmap"):
+        jax.jit(lambda n: jaxps.integrate(n, mask=s.mask, method=method))(s.normals)

@@ -95,6 +95,18 @@ def fill_on_threads(shapes, parts, threads: int):
     return jax.tree.unflatten(tree, [jax.device_put(o) for o in outs])
 
 
+def has_value(array) -> bool:
+    """Whether `array` holds a value now: anything but a tracer, or a tracer with a concrete
+    value (`jax.grad`'s outside `jit`); False inside `jit` and `vmap`, where host-side checks
+    and counts cannot run."""
+    import jax
+
+    if not isinstance(array, jax.core.Tracer):
+        return True
+    concrete = getattr(array, "to_concrete_value", None)
+    return concrete is not None and concrete() is not None
+
+
 def cpu_top_level(*trees) -> bool:
     """Whether a jitted call with these arguments runs as its own program on the CPU: no
     argument is a tracer (JAX accepts `compiler_options` on top-level jits only; inside a

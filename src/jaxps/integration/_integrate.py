@@ -28,11 +28,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ..core._host import to_device
+from ..core._host import has_value, to_device
 from ..core._safe import safe_sqrt
 from ..core._store import call as stored_call
 from ._grid import PRECONDITIONERS, bilateral, lsq_midpoint
-from ._poisson import _edge_div_of_means, _neumann_from_spectrum, _neumann_spectrum, dct_poisson
+from ._poisson import (
+    _edge_div_of_means,
+    _neumann_spectrum,
+    _reorder,
+    _reorder_inverse,
+    dct_poisson,
+)
 
 # The public names are listed (and re-exported) in `jaxps.integration`.
 
@@ -51,6 +57,7 @@ _CURL_FRACTION = 0.01
 # Cao et al.'s 1e-3: its published accuracy depends on these inexact solves (see docs).
 _LSQ_RTOL = 1e-4
 _BILATERAL_RTOL = 1e-3
+_NO_VALID_NORMAL = "normals has no finite, non-zero normal inside mask"
 
 
 class IntegrationResult(NamedTuple):
@@ -77,7 +84,15 @@ class IntegrationResult(NamedTuple):
     valid: Array
 
 
+def _host_count(mask) -> int:
+    """The true pixels of a bool mask, counted on the host (a CPU array is read in place).
+    Counted in a program, the bools were first written to memory as an int32 plane."""
+    return int(np.count_nonzero(np.asarray(mask)))
+
+
 def _check_normals(normals, mask):
+    """`normals` and `mask` as device arrays (an all-true mask for None), and the number of
+    pixels in the mask (None for a traced mask, which has no value to count yet)."""
     normals = to_device(normals)
     if normals.ndim != 3 or normals.shape[-1] != 3:
         raise ValueError(f"normals must be (H, W, 3), got shape {normals.shape}")
@@ -88,13 +103,15 @@ def _check_normals(normals, mask):
         raise ValueError(f"normals must have at least one pixel, got shape {normals.shape}")
     # Host-side checks on host arrays: no small jitted op to compile in a fresh process.
     if mask is None:
-        return normals, to_device(np.ones((h, w), bool))
+        return normals, to_device(np.ones((h, w), bool)), h * w
     if np.shape(mask) != (h, w):
         raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {np.shape(mask)}")
-    empty = (not bool(jnp.any(mask))) if isinstance(mask, jax.Array) else not np.any(mask)
-    if empty:
+    if not has_value(mask):
+        return normals, jnp.asarray(mask, bool), None
+    count = _host_count(mask)
+    if not count:
         raise ValueError("mask is empty: no pixel to integrate")
-    return normals, to_device(mask, bool)
+    return normals, to_device(mask, bool), count
 
 
 def _check_intrinsics(intrinsics):
@@ -221,7 +238,7 @@ def integrability_map(
     **Returns:** `(H, W)` non-negative curl in height units per pixel (0 outside the mask and
     for pixels with no full loop inside it), in the dtype of `normals`.
     """
-    normals, mask = _check_normals(normals, mask)
+    normals, mask, _ = _check_normals(normals, mask)
     cam = _check_intrinsics(intrinsics)
     n, valid = _unit_normals(normals, mask)
     gc, gr = _height_steps(n, valid, cam)
@@ -248,19 +265,20 @@ def _fc_spectrum(dzdc, dzdr, scale):
 # half spectrum: XLA-CPU ran the inverse FFT at half speed on a spectrum computed in the same
 # program (see `_poisson.py`, above `_poisson_spectrum`).
 @functools.partial(jax.jit, static_argnames="shape")
-def _fc_height(g, mask, shape):
-    """Frankot–Chellappa's height from `_fc_spectrum`'s half spectrum, mean 0 over `mask`."""
+def _fc_height(g, mask, count, shape):
+    """Frankot–Chellappa's height from `_fc_spectrum`'s half spectrum, mean 0 over `mask`, which
+    holds `count` pixels (`_host_count`)."""
     z = jnp.fft.irfft2(g, s=shape).astype(g.real.dtype)
-    return z - _mean_over(z, mask)
+    return z - _mean_over(z, mask, count)
 
 
 _fc_spectrum_jit = jax.jit(_fc_spectrum)
 
 
-def _frankot_chellappa(dzdc, dzdr, mask, scale=1.0):
-    """Least-squares periodic height from its column and row steps, mean 0 over `mask`, times
-    `scale` (Frankot & Chellappa, IEEE TPAMI 10(4), 1988)."""
-    return _fc_height(_fc_spectrum_jit(dzdc, dzdr, scale), mask, dzdc.shape)
+def _frankot_chellappa(dzdc, dzdr, mask, count, scale=1.0):
+    """Least-squares periodic height from its column and row steps, mean 0 over `mask` (of
+    `count` pixels), times `scale` (Frankot & Chellappa, IEEE TPAMI 10(4), 1988)."""
+    return _fc_height(_fc_spectrum_jit(dzdc, dzdr, scale), mask, count, dzdc.shape)
 
 
 def _crop(valid):
@@ -275,20 +293,23 @@ def _crop(valid):
     return tuple(box)
 
 
-def _mean_over(z, valid):
-    count = jnp.maximum(jnp.sum(valid), 1).astype(z.dtype)
-    return jnp.sum(jnp.where(valid, z, 0)) / count
+def _mean_over(z, valid, count=None):
+    """The mean of `z` over `valid`, which holds `count` pixels (counted here if None)."""
+    count = jnp.sum(valid) if count is None else jnp.asarray(count)
+    return jnp.sum(jnp.where(valid, z, 0)) / jnp.maximum(count, 1).astype(z.dtype)
 
 
-def _to_height(eta, valid, cam, pixel_size, everywhere):
-    """Solved variable -> height toward the viewer, mean 0 over `valid`."""
+def _to_height(eta, valid, cam, pixel_size, everywhere, count=None):
+    """Solved variable -> height toward the viewer, mean 0 over `valid` (of `count` pixels,
+    counted here if None). Elementwise but for the means, so it may run on any ordering of
+    the pixels."""
     dt = eta.dtype
-    eta = eta - _mean_over(eta, valid)
+    eta = eta - _mean_over(eta, valid, count)
     if cam is not None:
         fx = jnp.asarray(cam[0], dt)
         limit = jnp.asarray(50, dt)
         depth = fx * jnp.exp(jnp.clip(-eta / fx, -limit, limit))
-        eta = -(depth - _mean_over(depth, valid))
+        eta = -(depth - _mean_over(depth, valid, count))
     if not everywhere:
         eta = jnp.where(valid, eta, 0)
     return (eta * jnp.asarray(pixel_size, dt)).astype(dt)
@@ -333,20 +354,22 @@ def _fc_spectrum_from_normals(normals, mask, pixel_size):
 @functools.partial(jax.jit, static_argnames="cam")
 def _dct_spectrum_from_normals(normals, mask, cam):
     """`integrate(method="dct")` in two programs: this one, up to the solve's half spectrum
-    (and the valid mask), then `_dct_height`."""
+    and the valid mask in the solve's order of pixels (`_reorder`), then `_dct_height`."""
     if cam is None:
         gc, gr, valid = _stacked_steps(normals, mask)
     else:
         n, valid = _unit_normals(normals, mask)
         gc, gr = _height_steps(n, valid, cam)
-    return _neumann_spectrum(_edge_div_of_means(gc, gr)), valid
+    return _neumann_spectrum(_edge_div_of_means(gc, gr)), _reorder(valid)
 
 
 @functools.partial(jax.jit, static_argnames=("cam", "shape"))
-def _dct_height(g, valid, pixel_size, cam, shape):
-    """`_dct_spectrum_from_normals`'s spectrum to the height, and whether any normal was valid."""
-    eta = _neumann_from_spectrum(g, shape).astype(g.real.dtype)
-    return _to_height(eta, valid, cam, pixel_size, True), jnp.any(valid)
+def _dct_height(g, valid, count, pixel_size, cam, shape):
+    """`_dct_spectrum_from_normals`'s spectrum and reordered valid mask (of `count` pixels) to
+    the height. The height is made (mean, scale) in the solve's order of pixels, so that the
+    reordering back is the pass that writes it, not a pass of its own."""
+    eta = jnp.fft.irfft2(g, s=shape).astype(g.real.dtype)
+    return _reorder_inverse(_to_height(eta, valid, cam, pixel_size, True, count))
 
 
 def _auto_choice(n, valid, cam):
@@ -429,6 +452,13 @@ def integrate(
     function theorem, `"bilateral"` with the weights of its last solve held fixed (see
     "Gradients" in `docs/integration.md`).
 
+    Inside `jax.jit` and `jax.vmap`, `"fc"` and `"dct"` are traced into the caller's program
+    (e.g. `jax.vmap(jaxps.integrate)` over a stack of normal maps), the same heights to
+    float32 rounding; nothing is checked on the values there, so normals with no valid pixel
+    give a height of 0 instead of an error. `"lsq"`, `"bilateral"` and `"auto"` crop to the
+    mask and test their tolerances on the host, so they raise a `ValueError` inside `jit` or
+    `vmap` (`jax.grad` outside them is fine).
+
     **Arguments:**
     - `normals`: `(H, W, 3)` normals, n_z >= 0.
     - `mask`: `(H, W)` bool, valid pixels (default: all).
@@ -451,8 +481,8 @@ def integrate(
     """
     if method not in INTEGRATION_METHODS:
         raise ValueError(f"method must be one of {INTEGRATION_METHODS}, got {method!r}")
-    if isinstance(pixel_size, jax.Array):  # also a traced one (jax.grad)
-        ok = bool(jnp.isfinite(pixel_size) & (pixel_size > 0))
+    if isinstance(pixel_size, jax.Array):  # also a traced one (jax.grad; not checked in jit)
+        ok = not has_value(pixel_size) or bool(jnp.isfinite(pixel_size) & (pixel_size > 0))
     else:
         ok = bool(np.isfinite(pixel_size) and pixel_size > 0)
     if not ok:
@@ -468,7 +498,7 @@ def integrate(
     for name, value in (("tol", tol), ("cg_rtol", 1e-3 if cg_rtol is None else cg_rtol)):
         if not (np.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be positive, got {value}")
-    normals, mask = _check_normals(normals, mask)
+    normals, mask, count = _check_normals(normals, mask)
     if jnp.finfo(normals.dtype).bits < 32:
         # XLA's FFTs take float32 or float64 only: solve in float32, answer in the input's dtype
         out = integrate(normals.astype(jnp.float32), mask=mask, method=method,
@@ -481,24 +511,41 @@ def integrate(
         return out.astype(normals.dtype)
     dtype = normals.dtype
     cam = _check_intrinsics(intrinsics)
+    # Inside `jit` or `vmap` the normals (or the mask) have no value yet: nothing can be
+    # counted, cropped or checked on the host, so only the FFT methods are traced.
+    traced = count is None or not has_value(normals)
+    if traced and method not in ("fc", "dct"):
+        raise ValueError(
+            f"method={method!r} crops to the mask and checks its tolerance on the host, so it "
+            "runs outside jit and vmap (jax.grad is fine); inside them use 'fc' or 'dct'")
     if method in ("fc", "dct") and not return_info and (cam is None or method == "dct"):
         # The common cases in two jits each (split at the spectrum, see `_fc_height`): no
         # full-size temporaries between the steps.
         pixel_size = to_device(pixel_size, dtype)
+        shape = normals.shape[:2]
+        if traced:  # into the caller's program; counted there, nothing checked
+            if method == "fc":
+                spectrum, _ = _fc_spectrum_from_normals(normals, mask, pixel_size)
+                return _fc_height(spectrum, mask, count, shape=shape)
+            spectrum, valid = _dct_spectrum_from_normals(normals, mask, cam=cam)
+            return _dct_height(spectrum, valid, None, pixel_size, cam=cam, shape=shape)
         if method == "fc":
             spectrum, any_valid = stored_call(_fc_spectrum_from_normals, normals, mask,
                                               pixel_size)
-            height = stored_call(_fc_height, spectrum, mask, shape=normals.shape[:2])
-        else:
-            spectrum, valid = stored_call(_dct_spectrum_from_normals, normals, mask, cam=cam)
-            height, any_valid = stored_call(_dct_height, spectrum, valid, pixel_size, cam=cam,
-                                            shape=normals.shape[:2])
-        if not bool(any_valid):
-            raise ValueError("normals has no finite, non-zero normal inside mask")
-        return height
+            height = stored_call(_fc_height, spectrum, mask, to_device(count, dtype),
+                                 shape=shape)
+            if not bool(any_valid):
+                raise ValueError(_NO_VALID_NORMAL)
+            return height
+        spectrum, valid = stored_call(_dct_spectrum_from_normals, normals, mask, cam=cam)
+        count = _host_count(valid)  # before the height's program, which takes it
+        if not count:
+            raise ValueError(_NO_VALID_NORMAL)
+        return stored_call(_dct_height, spectrum, valid, to_device(count, dtype), pixel_size,
+                           cam=cam, shape=shape)
     n, valid = _unit_normals(normals, mask)
-    if not bool(jnp.any(valid)):
-        raise ValueError("normals has no finite, non-zero normal inside mask")
+    if not traced and not bool(jnp.any(valid)):
+        raise ValueError(_NO_VALID_NORMAL)
 
     reason = "requested"
     if method == "auto":
@@ -511,7 +558,7 @@ def integrate(
             p, q = gradients_from_normals(n, mask)
         else:
             p, q = gc, -gr
-        eta = _frankot_chellappa(p, -q, mask)
+        eta = _frankot_chellappa(p, -q, mask, count)
     elif method == "dct":
         eta = dct_poisson(gc, gr)
     else:

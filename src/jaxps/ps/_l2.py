@@ -338,7 +338,8 @@ def host_constants(lights: np.ndarray) -> tuple[np.ndarray, ...]:
 
 def _planes(images, sample_mask, mask, flat, batched=False):
     """One plane per sample and channel of `(K, H, W, C)` or grey `(K, H, W)` images, the
-    usable planes (or K `True`s) and the mask: `(H*W,)` planes if `flat`, else `(H, W)`.
+    usable planes (or K `True`s) and the mask (or one `True` for a mask of None: no all-true
+    plane to write): `(H*W,)` planes if `flat`, else `(H, W)`.
     `batched`: images `(N, K, H, W[, C])`, sample mask `(N, K, H, W)` and mask `(N, H, W)`,
     planes `(N, H, W)` (strided slices of the stack, read in place by the passes)."""
     lead = (slice(None),) if batched else ()
@@ -351,7 +352,12 @@ def _planes(images, sample_mask, mask, flat, batched=False):
              for i in range(k)]
     usable = [True] * k if sample_mask is None else [plane(sample_mask[(*lead, i)])
                                                      for i in range(k)]
-    return x, usable, plane(mask)
+    return x, usable, jnp.asarray(True) if mask is None else plane(mask)
+
+
+def _axis(mask):
+    """The mapped axis of `_planes`'s mask: None for a mask of None (one `True`)."""
+    return None if mask is None else 0
 
 
 def _lift(kernel, in_axes, flat, batched=False, per_capture=False):
@@ -368,7 +374,7 @@ def _lift(kernel, in_axes, flat, batched=False, per_capture=False):
 def _flags(images, mask, sample_mask, thresholds, flat=True, batched=False):
     """`_pixel_flags` over every pixel (`batched`: `(N, K, ...)` images as in `_planes`)."""
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
-    return _lift(_pixel_flags, (0, axis, 0, None), flat, batched)(
+    return _lift(_pixel_flags, (0, axis, _axis(mask), None), flat, batched)(
         *_planes(images, sample_mask, mask, flat, batched), thresholds)
 
 
@@ -395,7 +401,8 @@ def _solve_all_used(images, mask, sample_mask, thresholds, shared, flat=True, ba
     a leading N axis)."""
     axis = None if sample_mask is None else 0  # None: every sample allowed, no mask planes
     per_capture = batched and shared[0].ndim == 3
-    return _lift(_pixel_all_used, (0, axis, 0, None, None), flat, batched, per_capture)(
+    return _lift(_pixel_all_used, (0, axis, _axis(mask), None, None), flat, batched,
+                 per_capture)(
         *_planes(images, sample_mask, mask, flat, batched), shared, thresholds)
 
 
@@ -441,7 +448,7 @@ def _weighted_planes(images, lights, mask, sample_mask, thresholds, flat, all_fi
     else:
         lt = [[lights[..., i, p] for p in range(3)] for i in range(k)]
     axis = None if sample_mask is None else 0
-    return _lift(pixel, (0, axis, 0, 0 if per_pixel else None, None), flat, batched,
+    return _lift(pixel, (0, axis, _axis(mask), 0 if per_pixel else None, None), flat, batched,
                  per_capture)(*_planes(images, sample_mask, mask, flat, batched), lt, thresholds)
 
 
@@ -515,7 +522,7 @@ def _cast_shared(shared, dtype):
 @functools.partial(jax.jit, static_argnames=("branch",))
 def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=None):
     """Jitted core. `images` `(K, H, W, C)`, or grey `(K, H, W)` (albedo then `(H, W)`);
-    `lights` `(K, 3)` or `(K, H, W, 3)`;
+    `lights` `(K, 3)` or `(K, H, W, 3)`; `mask` `(H, W)` bool or None (every pixel);
     `sample_mask` `(K, H, W)` bool or None (every sample allowed: no mask planes are read, or
     copied into the `cond` below); `shared`: `host_constants(lights)` or None (computed here,
     differentiably); `branch`: None (decided in the program, by the `cond` below, as a call
@@ -537,7 +544,8 @@ def ps_l2(images, lights, mask, sample_mask, thresholds, shared=None, branch=Non
     host for a whole stack, with `l2_batch_flags` and `l2_batch_solve`).
     """
     h, w = images.shape[1:3]
-    mask = _mask_per_capture(mask, jnp.isnan(images.reshape(-1)[0]))
+    if mask is not None:
+        mask = _mask_per_capture(mask, jnp.isnan(images.reshape(-1)[0]))
     if shared is None and lights.ndim == 2:
         shared = _shared_constants(lights)
     elif shared is not None:
@@ -597,8 +605,6 @@ def l2_needs_weights(images, mask, sample_mask, thresholds):
     not depend on the lights)."""
     if images.dtype == jnp.float16:
         images = images.astype(jnp.float32)
-    if mask is None:
-        mask = jnp.ones(images.shape[1:3], bool)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
     return _max_flags(_flags(images, mask, sample_mask, thresholds))
 

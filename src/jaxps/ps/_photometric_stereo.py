@@ -308,7 +308,12 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
     if grey and method != "l2":
         images = images[..., None]
     k, h, w = images.shape[:3]
-    mask = jnp.ones((h, w), bool) if mask is None else jnp.asarray(mask, bool)
+    # L2 takes None: one `True` in its kernels, where an all-true plane built here was
+    # written to memory as an operand of its `switch` (a page fault per 4 KiB of it)
+    if mask is not None:
+        mask = jnp.asarray(mask, bool)
+    elif method != "l2":
+        mask = jnp.ones((h, w), bool)
     if sample_mask is not None:
         sample_mask = jnp.asarray(sample_mask, bool)
     elif method != "l2":  # L2 takes None (no mask planes to read, or to copy into its `cond`)
