@@ -10,12 +10,12 @@ At `--size` (default 1280x1024), K=5, every sample used:
   `OLDER_EMITTERS` as `photometric_stereo` compiles it) with `mask=None`, against the same
   program given the all-true mask that `photometric_stereo` used to build inside it (then an
   operand of its `switch`, written to memory on every call);
-- `fc`: `jaxps.integrate(normals)` (the mask's pixels counted on the host) against its two
-  programs with the count taken in the second one, as before;
-- `dct`: `jaxps.integrate(normals, method="dct")` (valid normals counted on the host, the mean
-  taken in the solve's order of pixels) against the two programs as they were before
-  (`before_dct_*` below: the valid mask in image order, the reordering back a pass of its own,
-  the count and the any-valid test in the second program).
+- `fc`: `jaxps.integrate(normals)` (no mask: no all-true plane, and the mean a plain one)
+  against its two programs as `integrate` ran them before (`before_fc`: an all-true mask
+  built and put on the device, the count taken in the second program);
+- `dct`: `jaxps.integrate(normals, method="dct")` (valid normals counted on the host) against
+  its two programs as they ran before (`before_dct`: the same all-true mask, the count and
+  the any-valid test in the second program).
 
 Each pair is timed alternately for `--rounds` rounds (the order swapped every round); the
 JSON holds the best and median ms of each, the largest difference between their outputs and
@@ -40,29 +40,24 @@ except ImportError:  # run as a script
     from benchmarks._common import arguments, environment, page_faults, write_json
 
 import jaxps
-from jaxps.core._host import OLDER_EMITTERS
+from jaxps.core._host import OLDER_EMITTERS, to_device
 from jaxps.integration import _integrate as integ
-from jaxps.integration._poisson import _edge_div_of_means, _neumann_spectrum, _reorder_inverse
+from jaxps.integration._poisson import _neumann_from_spectrum
 from jaxps.ps import _l2
 from jaxps.ps._photometric_stereo import _sample_thresholds
 
 
-@functools.partial(jax.jit, static_argnames="cam")
-def before_dct_spectrum(normals, mask, cam):
-    """`_dct_spectrum_from_normals` before: the valid mask returned in image order."""
-    gc, gr, valid = integ._stacked_steps(normals, mask)
-    return _neumann_spectrum(_edge_div_of_means(gc, gr)), valid
-
-
 @functools.partial(jax.jit, static_argnames=("cam", "shape"))
 def before_dct_height(g, valid, pixel_size, cam, shape):
-    """`_dct_height` before: reordered back first, then counted, meaned and scaled."""
-    eta = _reorder_inverse(jnp.fft.irfft2(g, s=shape)).astype(g.real.dtype)
+    """`_dct_height` before: the valid normals counted, and tested, in the program."""
+    eta = _neumann_from_spectrum(g, shape).astype(g.real.dtype)
     return integ._to_height(eta, valid, cam, pixel_size, True), jnp.any(valid)
 
 
-def before_dct(normals, mask, pixel_size):
-    spectrum, valid = before_dct_spectrum(normals, mask, cam=None)
+def before_dct(normals):
+    mask = to_device(np.ones(normals.shape[:2], bool))  # as `integrate` built it
+    pixel_size = to_device(1.0, normals.dtype)
+    spectrum, valid = integ._dct_spectrum_from_normals(normals, mask, cam=None)
     height, any_valid = before_dct_height(spectrum, valid, pixel_size, cam=None,
                                           shape=normals.shape[:2])
     if not bool(any_valid):
@@ -70,7 +65,9 @@ def before_dct(normals, mask, pixel_size):
     return height
 
 
-def before_fc(normals, mask, pixel_size):
+def before_fc(normals):
+    mask = to_device(np.ones(normals.shape[:2], bool))  # as `integrate` built it
+    pixel_size = to_device(1.0, normals.dtype)
     spectrum, any_valid = integ._fc_spectrum_from_normals(normals, mask, pixel_size)
     height = integ._fc_height(spectrum, mask, None, shape=normals.shape[:2])  # counted there
     if not bool(any_valid):
@@ -108,15 +105,13 @@ def main(rounds, size, out):
         return jax.jit(solve).lower(*args).compile(compiler_options=OLDER_EMITTERS)
 
     normals = jax.block_until_ready(jaxps.photometric_stereo(images, lights).normals)
-    mask = jax.device_put(np.ones((h, w), bool))
-    pixel_size = jax.device_put(np.float32(1.0))
     after_ps, before_ps = switch(False), switch(True)
     pairs = {
         "ps_l2": {"after": lambda: after_ps(*args), "before": lambda: before_ps(*args)},
         "fc": {"after": lambda: jaxps.integrate(normals),
-               "before": lambda: before_fc(normals, mask, pixel_size)},
+               "before": lambda: before_fc(normals)},
         "dct": {"after": lambda: jaxps.integrate(normals, method="dct"),
-                "before": lambda: before_dct(normals, mask, pixel_size)},
+                "before": lambda: before_dct(normals)},
     }
     res = {"env": environment(), "shape": [5, h, w], "rounds": rounds}
     for name, fns in pairs.items():

@@ -154,8 +154,8 @@ def test_fft_methods_trace_under_jit_vmap_and_grad(case):
     eager = [np.asarray(height(normals[i], masks[i])) for i in range(2)]
     for z, n, m in zip(eager, normals, masks):
         assert np.isfinite(z).all()
-        # mean 0 over the mask (fc), over the mask's valid normals (dct: counted on the host
-        # and taken in the solve's order of pixels)
+        # mean 0 over the mask (fc), over the mask's valid normals (dct), as counted on the
+        # host (eager) or in the program (traced)
         over = m if method == "fc" else m & np.isfinite(n).all(-1) & (np.abs(n).sum(-1) > 0)
         assert abs(z[over].mean()) < 1e-5 * np.abs(z).max()
     atol = 2e-5 * max(np.abs(z).max() for z in eager)  # float32 rounding of the other order

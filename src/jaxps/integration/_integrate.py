@@ -32,13 +32,7 @@ from ..core._host import has_value, to_device
 from ..core._safe import safe_sqrt
 from ..core._store import call as stored_call
 from ._grid import PRECONDITIONERS, bilateral, lsq_midpoint
-from ._poisson import (
-    _edge_div_of_means,
-    _neumann_spectrum,
-    _reorder,
-    _reorder_inverse,
-    dct_poisson,
-)
+from ._poisson import _edge_div_of_means, _neumann_from_spectrum, _neumann_spectrum, dct_poisson
 
 # The public names are listed (and re-exported) in `jaxps.integration`.
 
@@ -91,8 +85,9 @@ def _host_count(mask) -> int:
 
 
 def _check_normals(normals, mask):
-    """`normals` and `mask` as device arrays (an all-true mask for None), and the number of
-    pixels in the mask (None for a traced mask, which has no value to count yet)."""
+    """`normals` as a device array, `mask` as one (None stays None: every pixel, with no
+    all-true plane to build and read), and the number of pixels in the mask (None for a
+    traced mask, which has no value to count yet)."""
     normals = to_device(normals)
     if normals.ndim != 3 or normals.shape[-1] != 3:
         raise ValueError(f"normals must be (H, W, 3), got shape {normals.shape}")
@@ -103,7 +98,7 @@ def _check_normals(normals, mask):
         raise ValueError(f"normals must have at least one pixel, got shape {normals.shape}")
     # Host-side checks on host arrays: no small jitted op to compile in a fresh process.
     if mask is None:
-        return normals, to_device(np.ones((h, w), bool)), h * w
+        return normals, None, h * w
     if np.shape(mask) != (h, w):
         raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {np.shape(mask)}")
     if not has_value(mask):
@@ -144,7 +139,8 @@ def gradients_from_normals(
 
 @jax.jit
 def _unit_normals(normals, mask):
-    """Unit normals, `(0, 0, 1)` where non-finite or of zero length; and the valid mask."""
+    """Unit normals, `(0, 0, 1)` where non-finite or of zero length; and the valid mask
+    (`mask`, None for every pixel, and a finite non-zero normal)."""
     finite = jnp.all(jnp.isfinite(normals), axis=-1)
     n = jnp.where(finite[..., None], normals, 0)
     sq = jnp.sum(n * n, axis=-1, keepdims=True)
@@ -153,7 +149,7 @@ def _unit_normals(normals, mask):
     # sqrt of the guarded square: the length's gradient at a zero normal would be 0/0
     n = jnp.where(ok[..., None], n / jnp.sqrt(jnp.where(ok[..., None], sq, one)), 0)
     n = n.at[..., 2].set(jnp.where(ok, n[..., 2], one))
-    return n, mask & ok
+    return n, ok if mask is None else mask & ok
 
 
 def _slope_coefficients(n, cam):
@@ -294,15 +290,17 @@ def _crop(valid):
 
 
 def _mean_over(z, valid, count=None):
-    """The mean of `z` over `valid`, which holds `count` pixels (counted here if None)."""
+    """The mean of `z` over `valid` (None: every pixel), which holds `count` pixels (counted
+    here if None)."""
+    if valid is None:
+        return jnp.mean(z)
     count = jnp.sum(valid) if count is None else jnp.asarray(count)
     return jnp.sum(jnp.where(valid, z, 0)) / jnp.maximum(count, 1).astype(z.dtype)
 
 
 def _to_height(eta, valid, cam, pixel_size, everywhere, count=None):
     """Solved variable -> height toward the viewer, mean 0 over `valid` (of `count` pixels,
-    counted here if None). Elementwise but for the means, so it may run on any ordering of
-    the pixels."""
+    counted here if None)."""
     dt = eta.dtype
     eta = eta - _mean_over(eta, valid, count)
     if cam is not None:
@@ -326,7 +324,8 @@ def _orthographic_steps(normals, mask):
     finite = jnp.isfinite(nx) & jnp.isfinite(ny) & jnp.isfinite(nz)
     nx, ny, nz = (jnp.where(finite, a, 0) for a in (nx, ny, nz))
     sq = nx * nx + ny * ny + nz * nz
-    ok = mask & jnp.isfinite(sq) & (sq > 1e-12)
+    ok = jnp.isfinite(sq) & (sq > 1e-12)
+    ok = ok if mask is None else mask & ok
     inv = jax.lax.rsqrt(jnp.where(ok, sq, 1))
     slope = 1 / jnp.maximum(nz * inv, _MIN_NZ)
     return jnp.where(ok, -nx * inv * slope, 0), jnp.where(ok, ny * inv * slope, 0), ok
@@ -354,22 +353,21 @@ def _fc_spectrum_from_normals(normals, mask, pixel_size):
 @functools.partial(jax.jit, static_argnames="cam")
 def _dct_spectrum_from_normals(normals, mask, cam):
     """`integrate(method="dct")` in two programs: this one, up to the solve's half spectrum
-    and the valid mask in the solve's order of pixels (`_reorder`), then `_dct_height`."""
+    (and the valid mask), then `_dct_height`."""
     if cam is None:
         gc, gr, valid = _stacked_steps(normals, mask)
     else:
         n, valid = _unit_normals(normals, mask)
         gc, gr = _height_steps(n, valid, cam)
-    return _neumann_spectrum(_edge_div_of_means(gc, gr)), _reorder(valid)
+    return _neumann_spectrum(_edge_div_of_means(gc, gr)), valid
 
 
 @functools.partial(jax.jit, static_argnames=("cam", "shape"))
 def _dct_height(g, valid, count, pixel_size, cam, shape):
-    """`_dct_spectrum_from_normals`'s spectrum and reordered valid mask (of `count` pixels) to
-    the height. The height is made (mean, scale) in the solve's order of pixels, so that the
-    reordering back is the pass that writes it, not a pass of its own."""
-    eta = jnp.fft.irfft2(g, s=shape).astype(g.real.dtype)
-    return _reorder_inverse(_to_height(eta, valid, cam, pixel_size, True, count))
+    """`_dct_spectrum_from_normals`'s spectrum and valid mask (of `count` pixels, counted here
+    if None) to the height."""
+    eta = _neumann_from_spectrum(g, shape).astype(g.real.dtype)
+    return _to_height(eta, valid, cam, pixel_size, True, count)
 
 
 def _auto_choice(n, valid, cam):
@@ -543,6 +541,8 @@ def integrate(
             raise ValueError(_NO_VALID_NORMAL)
         return stored_call(_dct_height, spectrum, valid, to_device(count, dtype), pixel_size,
                            cam=cam, shape=shape)
+    if mask is None:  # the general path reads a mask plane
+        mask = to_device(np.ones(normals.shape[:2], bool))
     n, valid = _unit_normals(normals, mask)
     if not traced and not bool(jnp.any(valid)):
         raise ValueError(_NO_VALID_NORMAL)
