@@ -296,8 +296,9 @@ def _checked_lights(data: bytes, k: int) -> tuple[np.ndarray, tuple[np.ndarray, 
 def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, static):
     """Casts, default masks and the grey channel axis, inside one jit with the solver.
 
-    Done here rather than eagerly so that no full-size temporary (an all-true mask, an
-    expanded or sliced copy of the stack) is written to memory: XLA fuses them away.
+    Done here rather than eagerly so that no full-size temporary (an expanded or sliced copy
+    of the stack, an all-true mask) is written to memory where XLA can fuse it away. L2 gets
+    no all-true mask at all: as an operand of its `switch` one was written on every call.
     """
     out_dtype = images.dtype
     dtype = jnp.float32 if images.dtype == jnp.float16 else images.dtype
