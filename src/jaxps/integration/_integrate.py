@@ -521,25 +521,21 @@ def integrate(
         # full-size temporaries between the steps.
         pixel_size = to_device(pixel_size, dtype)
         shape = normals.shape[:2]
-        if traced:  # into the caller's program; counted there, nothing checked
-            if method == "fc":
-                spectrum, _ = _fc_spectrum_from_normals(normals, mask, pixel_size)
-                return _fc_height(spectrum, mask, count, shape=shape)
-            spectrum, valid = _dct_spectrum_from_normals(normals, mask, cam=cam)
-            return _dct_height(spectrum, valid, None, pixel_size, cam=cam, shape=shape)
+        # Traced (inside a caller's program) the counts are taken there and nothing is checked.
         if method == "fc":
             spectrum, any_valid = stored_call(_fc_spectrum_from_normals, normals, mask,
                                               pixel_size)
-            height = stored_call(_fc_height, spectrum, mask, to_device(count, dtype),
-                                 shape=shape)
-            if not bool(any_valid):
+            height = stored_call(_fc_height, spectrum, mask,
+                                 None if count is None else to_device(count, dtype), shape=shape)
+            if not traced and not bool(any_valid):
                 raise ValueError(_NO_VALID_NORMAL)
             return height
         spectrum, valid = stored_call(_dct_spectrum_from_normals, normals, mask, cam=cam)
-        count = _host_count(valid)  # before the height's program, which takes it
-        if not count:
+        count = None if traced else _host_count(valid)  # before the height's program takes it
+        if count == 0:
             raise ValueError(_NO_VALID_NORMAL)
-        return stored_call(_dct_height, spectrum, valid, to_device(count, dtype), pixel_size,
+        return stored_call(_dct_height, spectrum, valid,
+                           None if count is None else to_device(count, dtype), pixel_size,
                            cam=cam, shape=shape)
     if mask is None:  # the general path reads a mask plane
         mask = to_device(np.ones(normals.shape[:2], bool))

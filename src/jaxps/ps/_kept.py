@@ -28,8 +28,9 @@ __all__ = [
 
 # Entries `(key, arrays)`, newest first (`keep`, `spare_outputs`). Results, keyed by their
 # `result_specs`: of L2 batches (`photometric_stereo_batch`), and of single calls whose normals
-# alone exceed glibc's largest mmap threshold (`photometric_stereo`). Two entries each: in `res = photometric_stereo(...)` in a loop, `res` still holds the previous
-# result while the next call runs, so the one before it is the one free.
+# alone exceed glibc's largest mmap threshold (`photometric_stereo`). Two entries each: in
+# `res = photometric_stereo(...)` in a loop, `res` still holds the previous result while the
+# next call runs, so the one before it is the one free.
 _BATCH: list[tuple] = []
 _SINGLE: list[tuple] = []
 _ENTRIES = 2
