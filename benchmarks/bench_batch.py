@@ -7,7 +7,7 @@ run: N single calls. The `_dropped` rows set a shadow threshold at the 5th perce
 samples in the mask, so every capture takes the weighted solve; the `_k12` rows take 12 lights.
 The batch solves the stack as one image (`_l2_one_image`); the `lights_per_capture` rows give
 the same lights once per capture, `(N, K, 3)`. A batch keeps its latest two results and
-writes into a dropped one (`spare_outputs` in `ps/_kept.py`), as the repeated calls here
+writes into a dropped one (`spare_outputs` in `core/_kept.py`), as the repeated calls here
 do; the `_fresh` rows turn that off (`JAXPS_BATCH_KEEP_BYTES=0`), so every batch writes into
 fresh outputs.
 `--emitters` times the one-image solve compiled with XLA-CPU's default and older emitters

@@ -2,7 +2,8 @@
 
 At 1280x1024: L2 photometric stereo (K = 4, 5, 12; K = 12 with about 5% of the samples in the
 mask dropped by a shadow threshold), Frankot–Chellappa and the DCT Poisson solve, and PS + FC
-together. Then time per pixel from 0.25 MP to 16 MP (PS K=5 and FC), and the peak resident
+together. Then time per pixel from 0.25 MP to 16 MP (PS K=5 and FC, numpy's PS and scipy's
+FC beside them; the sizes take turns over the rounds), and the peak resident
 memory of a fresh process that solves and integrates one 16 MP five-frame capture.
 
 Compile time and run time are reported apart (first call vs. the median of repeated calls,
@@ -17,8 +18,10 @@ import argparse
 import json
 import os
 import resource
+import statistics
 import subprocess
 import sys
+import time
 
 import jax
 import jax.numpy as jnp
@@ -29,12 +32,12 @@ import jaxps
 from jaxps.integration._poisson import dct_poisson
 
 try:
-    from benchmarks._common import environment, page_faults, time_calls
+    from benchmarks._common import block, environment, page_faults, time_calls
 except ImportError:  # run as a script
     import pathlib
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, page_faults, time_calls
+    from benchmarks._common import block, environment, page_faults, time_calls
 
 H, W = 1024, 1280
 
@@ -164,24 +167,51 @@ def _pq(n):
     return -n[..., 0] / nz, -n[..., 1] / nz
 
 
-def scaling_rows(repeats, sizes):
-    """Time per pixel for PS (K=5) and FC at each (rows, columns)."""
-    rows = []
+def scaling_rows(rounds, sizes):
+    """Time per pixel for PS (K=5) and FC at each (rows, columns), with numpy's PS and scipy's
+    FC beside them as the same work's baselines.
+
+    The sizes take turns over `rounds` rounds, so that the machine's slow spells fall on all
+    of them alike. In each round, each size runs each method as a block of about as many
+    calls as fit the time of one call at the largest size (at least one), so that every size
+    gets about as many seconds of samples and a block keeps the cache as repeated calls of a
+    caller would. Each figure is the median call. The page faults are those of one more call.
+    """
     lights = jaxps.synthetic.scanner_lights(20.0)
+    pinv = np.linalg.pinv(np.asarray(lights, np.float32)).astype(np.float32)
+    cases, calls = {}, {}
     for h, w in sizes:
         scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(h, w), lights)
-        images = jax.device_put(scene.images)
-        _, ps = timed(lambda: jaxps.photometric_stereo(images, lights), repeats)
+        images_np = np.asarray(scene.images, np.float32)
+        images = jax.device_put(images_np)
         normals = jax.block_until_ready(jaxps.photometric_stereo(images, lights).normals)
-        _, fc = timed(lambda: jaxps.integrate(normals), repeats)
+        p, q = (a.astype(np.float32) for a in _pq(np.asarray(normals)))
+        cases[h, w] = {
+            "ps_l2": lambda images=images: jaxps.photometric_stereo(images, lights),
+            "fc": lambda normals=normals: jaxps.integrate(normals),
+            "numpy_ps": lambda images_np=images_np: numpy_ps(images_np, pinv),
+            "scipy_fc": lambda p=p, q=q: scipy_fc(p, q)}
+        calls[h, w] = max(1, round(sizes[-1][0] * sizes[-1][1] / (h * w)))
+        for fn in cases[h, w].values():  # compile and warm up
+            block(fn())
+    times = {(size, name): [] for size in cases for name in cases[size]}
+    for _ in range(rounds):
+        for size, fns in cases.items():
+            for name, fn in fns.items():
+                for _ in range(calls[size]):
+                    t0 = time.perf_counter()
+                    block(fn())
+                    times[size, name].append(time.perf_counter() - t0)
+    rows = []
+    for (h, w), fns in cases.items():
         mp = h * w / 1e6
-        faults = {"ps_l2_page_faults_per_kpx": page_faults(
-                      lambda: jaxps.photometric_stereo(images, lights)) / (1e3 * mp),
-                  "fc_page_faults_per_kpx": page_faults(
-                      lambda: jaxps.integrate(normals)) / (1e3 * mp)}
-        rows.append({"rows": h, "columns": w, "megapixels": mp, "ps_l2_s": ps, "fc_s": fc,
-                     "ps_l2_ns_per_px": 1e3 * ps / mp, "fc_ns_per_px": 1e3 * fc / mp,
-                     **faults})
+        med = {name: statistics.median(times[(h, w), name]) for name in fns}
+        rows.append({
+            "rows": h, "columns": w, "megapixels": mp, "calls": rounds * calls[h, w],
+            "ps_l2_s": med["ps_l2"], "fc_s": med["fc"],
+            **{f"{name}_ns_per_px": 1e3 * t / mp for name, t in med.items()},
+            "ps_l2_page_faults_per_kpx": page_faults(fns["ps_l2"]) / (1e3 * mp),
+            "fc_page_faults_per_kpx": page_faults(fns["fc"]) / (1e3 * mp)})
     return rows
 
 
@@ -216,7 +246,7 @@ def main():
              [(512, 512), (1024, 1024), (2048, 2048), (4096, 4096)])
     results = {"shape": [h, w], "repeats": repeats, "quick": args.quick,
                "rows": core_rows(repeats, h, w),
-               "scaling": scaling_rows(max(3, repeats // 4), sizes)}
+               "scaling": scaling_rows(max(2, repeats // 4), sizes)}
     big = sizes[-1]
     out = subprocess.run([sys.executable, __file__, "--peak-rss", *map(str, big)],
                          capture_output=True, text=True, check=True)
@@ -234,8 +264,9 @@ def main():
               f"{1e3 * r['run_s']:8.2f} ms{ratio}{comp}")
     for r in results["scaling"]:
         print(f"{r['rows']:>5}x{r['columns']:<5} PS {r['ps_l2_ns_per_px']:6.2f} ns/px "
-              f"({r['ps_l2_page_faults_per_kpx']:.2f} page faults per 1000 px), "
-              f"FC {r['fc_ns_per_px']:6.2f} ns/px ({r['fc_page_faults_per_kpx']:.2f})")
+              f"({r['ps_l2_page_faults_per_kpx']:.2f} page faults per 1000 px; numpy "
+              f"{r['numpy_ps_ns_per_px']:.2f}), FC {r['fc_ns_per_px']:6.2f} ns/px "
+              f"({r['fc_page_faults_per_kpx']:.2f}; scipy {r['scipy_fc_ns_per_px']:.2f})")
     print("peak memory:", results["peak_memory"])
     _chart(results, args.out.replace(".json", ".png"))
 
@@ -259,8 +290,14 @@ def _chart(results, path):
     ax.set_title(f"{results['shape'][1]}x{results['shape'][0]}, after compile")
     sc = results["scaling"]
     mp = [r["megapixels"] for r in sc]
-    bx.plot(mp, [r["ps_l2_ns_per_px"] for r in sc], "o-", label="PS L2, K=5")
-    bx.plot(mp, [r["fc_ns_per_px"] for r in sc], "s-", label="Frankot–Chellappa")
+    bx.plot(mp, [r["ps_l2_ns_per_px"] for r in sc], "o-", color="tab:blue", label="PS L2, K=5")
+    bx.plot(mp, [r["fc_ns_per_px"] for r in sc], "s-", color="tab:orange",
+            label="Frankot–Chellappa")
+    if "numpy_ps_ns_per_px" in sc[0]:
+        bx.plot(mp, [r["numpy_ps_ns_per_px"] for r in sc], "o--", color="tab:blue", alpha=0.5,
+                label="numpy PS")
+        bx.plot(mp, [r["scipy_fc_ns_per_px"] for r in sc], "s--", color="tab:orange",
+                alpha=0.5, label="scipy FC")
     bx.set_xscale("log")
     bx.set_xlabel("megapixels")
     bx.set_ylabel("ns per pixel")

@@ -65,6 +65,12 @@ def spread(run: dict, key: str) -> float:
     return max(values) / min(values)
 
 
+def baseline_spread(core: list[dict], key: str, label: str) -> str:
+    """`spread` of a baseline's time per pixel in the runs that measured it, as a note."""
+    values = [spread(r, key) for r in core if key in r["scaling"][0]]
+    return f"{label}: " + ", ".join(f"{v:.2f}x" for v in values) if values else ""
+
+
 def target(name, values, bound, at_most=True, unit="x", source="", note=""):
     """One row: `values` (one per run) held to `bound`."""
     met = [v <= bound if at_most else v >= bound for v in values]
@@ -95,9 +101,11 @@ def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: dict | None
             target("L2 PS + FC, over numpy PS + scipy FC",
                    [core_ratio(r, "ps_l2+fc", 5) for r in core], 1.0, source=src),
             target("time per pixel 0.26-16 MP, L2 PS: largest over smallest",
-                   [spread(r, "ps_l2_ns_per_px") for r in core], 1.3, source=src),
+                   [spread(r, "ps_l2_ns_per_px") for r in core], 1.3, source=src,
+                   note=baseline_spread(core, "numpy_ps_ns_per_px", "numpy's PS, same runs")),
             target("time per pixel 0.26-16 MP, FC: largest over smallest",
-                   [spread(r, "fc_ns_per_px") for r in core], 1.3, source=src),
+                   [spread(r, "fc_ns_per_px") for r in core], 1.3, source=src,
+                   note=baseline_spread(core, "scipy_fc_ns_per_px", "scipy's FC, same runs")),
             target("16 MP five-frame capture, peak RSS",
                    [r["peak_memory"]["peak_rss_gb"] for r in core], 6.0, unit=" GB",
                    source=src),

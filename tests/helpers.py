@@ -31,7 +31,7 @@ def assert_results_equal(res, want, label=""):
 
 
 def assert_reuses_dropped_results(solve, expected, last=None):
-    """The reuse of kept results (`ps/_kept.py`), for `solve(i, **kw)` of five stacks with
+    """The reuse of kept results (`core/_kept.py`), for `solve(i, **kw)` of five stacks with
     `expected` arrays: a result still held is never written, one dropped is (its normals'
     buffer is reused), and one of which a numpy view is left is not; every result equals
     `expected`. `last`: keyword arguments of the fifth call. Returns the fourth and fifth."""

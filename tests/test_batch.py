@@ -225,7 +225,8 @@ def test_batch_l2_writes_into_a_result_the_caller_dropped(monkeypatch):
     one the caller has dropped (in one program or in chunks), never into one still held, nor
     into one of which a numpy view is left. `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing, nor does
     a free-threaded interpreter; a bad value is a ValueError naming the variable."""
-    from jaxps.ps import _batch, _kept
+    from jaxps.core import _kept
+    from jaxps.ps import _batch
 
     monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
     scenes, images = _captures()

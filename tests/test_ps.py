@@ -421,7 +421,8 @@ def test_large_single_calls_write_into_a_result_the_caller_dropped(colour, monke
     into one still held or viewed, and every result equals the call with nothing kept (the
     switch program for grey stacks, the host-chosen solve for colour, dropping samples or
     not). `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing; `release_batch_outputs` lets go."""
-    from jaxps.ps import _kept, _photometric_stereo
+    from jaxps.core import _kept
+    from jaxps.ps import _photometric_stereo
 
     monkeypatch.setattr(_photometric_stereo, "_KEEP_FROM_BYTES", 0)
     monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)

@@ -28,8 +28,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ..core._host import has_value, to_device
+from ..core._host import cpu_top_level, has_value, to_device
+from ..core._kept import _FC_SCRATCH, _HEIGHTS, KEEP_FROM_BYTES, keep, keep_bytes, spare_outputs
 from ..core._safe import safe_sqrt
+from ..core._store import active as store_active
 from ..core._store import call as stored_call
 from ._grid import PRECONDITIONERS, bilateral, lsq_midpoint
 from ._poisson import _edge_div_of_means, _neumann_from_spectrum, _neumann_spectrum, dct_poisson
@@ -52,6 +54,8 @@ _CURL_FRACTION = 0.01
 _LSQ_RTOL = 1e-4
 _BILATERAL_RTOL = 1e-3
 _NO_VALID_NORMAL = "normals has no finite, non-zero normal inside mask"
+# Eager "fc" of normals over this many bytes writes into kept memory (`_fc_kept`).
+_KEEP_FROM_BYTES = KEEP_FROM_BYTES
 
 
 class IntegrationResult(NamedTuple):
@@ -243,13 +247,18 @@ def integrability_map(
 
 def _fc_spectrum(dzdc, dzdr, scale):
     """Frankot–Chellappa's height spectrum (half plane) from the column and row steps, times
-    `scale`. Both spectra, the scale and the -1j are one pass over the half spectrum (no
-    full-size temporaries)."""
-    h, w = dzdc.shape
-    dt = dzdc.dtype
+    `scale`."""
+    return _fc_solve(jnp.fft.rfft2(dzdc), jnp.fft.rfft2(dzdr), scale, dzdc.shape)
+
+
+def _fc_solve(fc, fr, scale, shape):
+    """Frankot–Chellappa's height spectrum from the half spectra `fc`, `fr` of the column and
+    row steps of an image of `shape`, times `scale`. Both spectra, the scale and the -1j are
+    one pass over the half spectrum (no full-size temporaries)."""
+    h, w = shape
+    dt = fc.real.dtype
     wc = 2 * jnp.pi * jnp.fft.rfftfreq(w).astype(dt)[None, :]
     wr = 2 * jnp.pi * jnp.fft.fftfreq(h).astype(dt)[:, None]
-    fc, fr = jnp.fft.rfft2(dzdc), jnp.fft.rfft2(dzdr)
     d = wc * wc + wr * wr
     factor = jnp.where(d > 0, jnp.asarray(scale, dt) / jnp.where(d > 0, d, 1), 0)  # DC -> 0
     re = wc * fc.real + wr * fr.real
@@ -260,12 +269,21 @@ def _fc_spectrum(dzdc, dzdr, scale):
 # Frankot–Chellappa and the DCT solve run as two programs each at the top level, split at the
 # half spectrum: XLA-CPU ran the inverse FFT at half speed on a spectrum computed in the same
 # program (see `_poisson.py`, above `_poisson_spectrum`).
-@functools.partial(jax.jit, static_argnames="shape")
-def _fc_height(g, mask, count, shape):
+def _fc_height_of(g, mask, count, shape):
     """Frankot–Chellappa's height from `_fc_spectrum`'s half spectrum, mean 0 over `mask`, which
     holds `count` pixels (`_host_count`)."""
     z = jnp.fft.irfft2(g, s=shape).astype(g.real.dtype)
     return z - _mean_over(z, mask, count)
+
+
+_fc_height = jax.jit(_fc_height_of, static_argnames="shape")
+
+
+@functools.partial(jax.jit, static_argnames="shape", donate_argnums=0, keep_unused=True)
+def _fc_height_into(out, g, mask, count, shape):
+    """`_fc_height` written into `out`, the donated buffer of a height its caller has let go
+    of (`_fc_kept`)."""
+    return _fc_height_of(g, mask, count, shape)
 
 
 _fc_spectrum_jit = jax.jit(_fc_spectrum)
@@ -337,17 +355,66 @@ def _stacked_steps(normals, mask):
     the two planes' passes to share; this way one pass computes both steps from the normals:
     at 1 MP the median FC took 4-26% less time and DCT 15-34% less, with the same heights
     (five runs of `benchmarks/bench_stacked_steps.py`)."""
-    dzdc, dzdr, ok = _orthographic_steps(normals, mask)
-    steps = jax.lax.optimization_barrier(jnp.stack([dzdc, dzdr]))
+    steps, ok = _stacked_steps_array(normals, mask)
     return steps[0], steps[1], ok
+
+
+def _stacked_steps_array(normals, mask):
+    """`_stacked_steps`'s `(2, H, W)` steps as one array, and the valid mask."""
+    dzdc, dzdr, ok = _orthographic_steps(normals, mask)
+    return jax.lax.optimization_barrier(jnp.stack([dzdc, dzdr])), ok
+
+
+def _fc_first(normals, mask, pixel_size):
+    """`integrate(method="fc")` without intrinsics, up to the height's spectrum (`_fc_height`
+    finishes it): `((steps, fc, fr), spectrum, any_valid)`, with its intermediate planes (the
+    `(2, H, W)` steps and their two half spectra) and whether any normal was valid."""
+    steps, ok = _stacked_steps_array(normals, mask)
+    fc, fr = jnp.fft.rfft2(steps[0]), jnp.fft.rfft2(steps[1])
+    return (steps, fc, fr), _fc_solve(fc, fr, pixel_size, ok.shape), jnp.any(ok)
 
 
 @jax.jit
 def _fc_spectrum_from_normals(normals, mask, pixel_size):
-    """`integrate(method="fc")` without intrinsics, up to the height's spectrum (`_fc_height`
-    finishes it); and whether any normal was valid."""
-    dzdc, dzdr, ok = _stacked_steps(normals, mask)
-    return _fc_spectrum(dzdc, dzdr, pixel_size), jnp.any(ok)
+    """`_fc_first` without its intermediate planes: `(spectrum, any_valid)`."""
+    return _fc_first(normals, mask, pixel_size)[1:]
+
+
+@functools.partial(jax.jit, donate_argnums=0, keep_unused=True)
+def _fc_spectrum_into(scratch, normals, mask, pixel_size):
+    """`_fc_spectrum_from_normals` writing into the donated `scratch` of an earlier call
+    (`_fc_kept`): `(steps, fc, fr, spectrum), any_valid`. Inside one program the intermediate
+    planes are temporaries, fresh memory on every call; here they are outputs."""
+    planes, spectrum, any_valid = _fc_first(normals, mask, pixel_size)
+    return (*planes, spectrum), any_valid
+
+
+def _fc_kept(normals, mask, count, pixel_size):
+    """`integrate(method="fc")` of normals over `_KEEP_FROM_BYTES` at the top level on the CPU,
+    without intrinsics: `(height, any_valid)`.
+
+    Frankot–Chellappa's intermediate planes (its steps, their half spectra and the height's
+    spectrum, 20 bytes a pixel) are written into those of the latest such call of the same
+    shapes, and the height into one of the latest two heights once its caller has let go of it
+    (`core._kept.spare_outputs`); both are kept in turn, within `$JAXPS_BATCH_KEEP_BYTES`. In
+    fresh memory, which glibc maps afresh for blocks this large on every call, each first write
+    to a 4 KiB page is a page fault (docs/speed.md, "Why the time per pixel grows"). At
+    4096x4096 this took the median call from 365 to 217 ms (`benchmarks/ab_fc_kept.py`)."""
+    budget = keep_bytes()
+    shape, dtype = normals.shape[:2], normals.dtype
+    key = (shape, dtype)
+    scratch = spare_outputs(_FC_SCRATCH, key) if budget else None
+    if scratch is None:  # the first call of these shapes: zeros, so that one program serves
+        half = (shape[0], shape[1] // 2 + 1)
+        cdt = np.result_type(dtype, np.complex64)
+        scratch = (jnp.zeros((2, *shape), dtype), *(jnp.zeros(half, cdt) for _ in range(3)))
+    scratch, any_valid = _fc_spectrum_into(scratch, normals, mask, pixel_size)
+    out = spare_outputs(_HEIGHTS, key) if budget else None
+    out = jnp.zeros(shape, dtype) if out is None else out[0]
+    height = _fc_height_into(out, scratch[-1], mask, count, shape=shape)
+    keep(_FC_SCRATCH, key, scratch, budget)
+    keep(_HEIGHTS, key, (height,), budget)
+    return height, any_valid
 
 
 @functools.partial(jax.jit, static_argnames="cam")
@@ -523,10 +590,14 @@ def integrate(
         shape = normals.shape[:2]
         # Traced (inside a caller's program) the counts are taken there and nothing is checked.
         if method == "fc":
-            spectrum, any_valid = stored_call(_fc_spectrum_from_normals, normals, mask,
-                                              pixel_size)
-            height = stored_call(_fc_height, spectrum, mask,
-                                 None if count is None else to_device(count, dtype), shape=shape)
+            count = None if count is None else to_device(count, dtype)
+            if (not traced and not store_active() and cpu_top_level(normals, mask)
+                    and normals.size * normals.dtype.itemsize > _KEEP_FROM_BYTES):
+                height, any_valid = _fc_kept(normals, mask, count, pixel_size)
+            else:
+                spectrum, any_valid = stored_call(_fc_spectrum_from_normals, normals, mask,
+                                                  pixel_size)
+                height = stored_call(_fc_height, spectrum, mask, count, shape=shape)
             if not traced and not bool(any_valid):
                 raise ValueError(_NO_VALID_NORMAL)
             return height

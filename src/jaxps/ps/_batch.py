@@ -31,7 +31,7 @@ from ..core._host import (
     fill_on_threads,
 )
 from ..lights._directions import validate_lights
-from ._kept import (
+from ..core._kept import (
     _BATCH,
     _LOCK,
     _SCRATCH,

@@ -24,10 +24,10 @@ from ..core._host import (
     fill_on_threads,
     to_device,
 )
+from ..core._kept import _SINGLE, KEEP_FROM_BYTES, keep, keep_bytes, result_specs, spare_outputs
 from ..core._store import active as store_active
 from ..core._store import call as stored_call
 from ..lights._directions import validate_lights
-from ._kept import _SINGLE, keep, keep_bytes, result_specs, spare_outputs
 from ._l2 import PSResult, host_constants, l2_branch
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
@@ -354,9 +354,8 @@ _run_older_emitters_into = CpuTuned(_run_into, OLDER_EMITTERS, static_argnames=(
 _run_into_out = jax.jit(_run_into, static_argnames=("method", "static"), donate_argnums=0,
                         keep_unused=True)
 # A top-level L2 call whose normals take more bytes than this writes into a kept result
-# (`_into_kept_result`): glibc maps blocks above its mmap threshold, which rises to 32 MiB at
-# most, afresh on every call, and the first write to each 4 KiB page is a page fault.
-_KEEP_FROM_BYTES = 32 << 20
+# (`_into_kept_result`): the first write to each 4 KiB page of fresh memory is a page fault.
+_KEEP_FROM_BYTES = KEEP_FROM_BYTES
 
 
 def _into_kept_result(branch, images, lights, mask, sample_mask, thresholds, dynamic, **static):

@@ -1,6 +1,7 @@
-"""Memory that large L2 calls keep for reuse: results (a later call of the same shapes writes
-into the buffers of one the caller has let go of, instead of into fresh memory), a batch's
-aligned copy of its stack and the weighted batch solve's intermediate planes.
+"""Memory that large calls keep for reuse: L2 results and heights (a later call of the same
+shapes writes into the buffers of one the caller has let go of, instead of into fresh memory),
+a batch's aligned copy of its stack, and the intermediate planes of the weighted batch solve
+and of Frankot–Chellappa.
 
 XLA-CPU allocates each call's outputs with `malloc`. glibc serves a block larger than its
 mmap threshold (which rises to at most 32 MiB) with a fresh `mmap` and unmaps it on `free`,
@@ -23,7 +24,7 @@ import threading
 import numpy as np
 
 __all__ = [
-    "keep", "keep_bytes", "release_batch_outputs", "result_specs", "spare_outputs",
+    "KEEP_FROM_BYTES", "keep", "keep_bytes", "release_batch_outputs", "result_specs", "spare_outputs",
 ]
 
 # Entries `(key, arrays)`, newest first (`keep`, `spare_outputs`). Results, keyed by their
@@ -40,7 +41,15 @@ _STAGE: list[np.ndarray] = []
 # (`l2_batch_solve`'s `scratch`), keyed by the `(shape, dtype)` of the chunk's stack, since a
 # batch's last chunk may be smaller than the others: never returned to a caller.
 _SCRATCH: list[tuple] = []
+# Heights of `integrate(method="fc")` calls whose normals exceed glibc's largest mmap
+# threshold, keyed by `(shape, dtype)`, and the intermediate planes of the latest two such calls
+# (their steps and spectra: never returned to a caller), keyed the same way.
+_HEIGHTS: list[tuple] = []
+_FC_SCRATCH: list[tuple] = []
 _LOCK = threading.Lock()
+# A single call whose normals take more bytes than this writes into kept memory: glibc maps
+# blocks above its mmap threshold, which rises to 32 MiB at most, afresh on every call.
+KEEP_FROM_BYTES = 32 << 20
 _KEEP_DEFAULT = 1 << 30
 
 
@@ -107,8 +116,8 @@ def keep(kept: list, key, arrays, budget: int) -> None:
 
 
 def release_batch_outputs() -> None:
-    """Let go of the results that `photometric_stereo_batch` and `photometric_stereo` keep for
-    reuse.
+    """Let go of the results that `photometric_stereo_batch`, `photometric_stereo` and
+    `integrate` keep for reuse.
 
     An L2 batch on one device keeps its latest two results, and so does a top-level L2 call on
     the CPU whose normals exceed 32 MiB (about 2.8 MP): the next calls of the same shapes write
@@ -116,8 +125,9 @@ def release_batch_outputs() -> None:
     costs a page fault per 4 KiB (docs/speed.md, "Many captures"). A result the caller still
     holds is never written to. A batch also keeps the aligned copy of the latest unaligned
     numpy stack and the weighted solve's intermediate planes of the latest batch that dropped
-    samples. Each of these is bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB; `0` keeps
+    samples. `integrate(method="fc")` keeps its latest two heights and intermediate planes
+    in the same way when its normals exceed 32 MiB. Each of these is bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB; `0` keeps
     none). This frees what is kept, e.g. at the end of a stream of large captures."""
     with _LOCK:
-        for kept in (_BATCH, _SINGLE, _STAGE, _SCRATCH):
+        for kept in (_BATCH, _SINGLE, _STAGE, _SCRATCH, _HEIGHTS, _FC_SCRATCH):
             kept.clear()
