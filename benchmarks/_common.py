@@ -148,8 +148,26 @@ def environment() -> dict:
         "allocator": {k: v for k, v in os.environ.items()
                       if k == "GLIBC_TUNABLES" or k.startswith("MALLOC_")},
         "transparent_hugepage": _thp_mode(),
+        "cpu": _cpu(),
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
+
+
+def _cpu() -> str | None:
+    """The CPU's model name, family and model, and its widest vector extension (the machines
+    these benchmarks run on change from day to day, and numpy's BLAS and XLA pick their
+    kernels by them), if Linux."""
+    try:
+        text = pathlib.Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return None
+    info = dict(line.split(":", 1) for line in text.split("\n\n")[0].splitlines()
+                if ":" in line)
+    info = {k.strip(): v.strip() for k, v in info.items()}
+    flags = info.get("flags", "").split()
+    vector = next((f for f in ("avx512f", "avx2", "avx") if f in flags), "none")
+    return (f"{info.get('model name', '?')} (family {info.get('cpu family', '?')}, "
+            f"model {info.get('model', '?')}), {vector}")
 
 
 def _thp_mode() -> str | None:

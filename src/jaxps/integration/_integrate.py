@@ -399,7 +399,8 @@ def _fc_kept(normals, mask, count, pixel_size):
     (`core._kept.spare_outputs`); both are kept in turn, within `$JAXPS_BATCH_KEEP_BYTES`. In
     fresh memory, which glibc maps afresh for blocks this large on every call, each first write
     to a 4 KiB page is a page fault (docs/speed.md, "Why the time per pixel grows"). At
-    4096x4096 this took the median call from 365 to 217 ms (`benchmarks/ab_fc_kept.py`)."""
+    4096x4096 the median call took 224 against 299 ms, with 32,783 against 118,808 page
+    faults (`benchmarks/ab_fc_kept.py`)."""
     budget = keep_bytes()
     shape, dtype = normals.shape[:2], normals.dtype
     key = (shape, dtype)
