@@ -293,11 +293,10 @@ def _chart(results, path):
     bx.plot(mp, [r["ps_l2_ns_per_px"] for r in sc], "o-", color="tab:blue", label="PS L2, K=5")
     bx.plot(mp, [r["fc_ns_per_px"] for r in sc], "s-", color="tab:orange",
             label="Frankot–Chellappa")
-    if "numpy_ps_ns_per_px" in sc[0]:
-        bx.plot(mp, [r["numpy_ps_ns_per_px"] for r in sc], "o--", color="tab:blue", alpha=0.5,
-                label="numpy PS")
-        bx.plot(mp, [r["scipy_fc_ns_per_px"] for r in sc], "s--", color="tab:orange",
-                alpha=0.5, label="scipy FC")
+    bx.plot(mp, [r["numpy_ps_ns_per_px"] for r in sc], "o--", color="tab:blue", alpha=0.5,
+            label="numpy PS")
+    bx.plot(mp, [r["scipy_fc_ns_per_px"] for r in sc], "s--", color="tab:orange", alpha=0.5,
+            label="scipy FC")
     bx.set_xscale("log")
     bx.set_xlabel("megapixels")
     bx.set_ylabel("ns per pixel")
