@@ -187,10 +187,11 @@ def test_host_methods_refuse_a_trace(method):
         jax.jit(lambda n: jaxps.integrate(n, mask=s.mask, method=method))(s.normals)
 
 
-def test_large_fc_writes_into_kept_memory(monkeypatch):
-    """Eager `"fc"` of normals over `_KEEP_FROM_BYTES` (lowered here to 0) writes its
-    intermediate planes into the latest call's and its height into one the caller has dropped,
-    never into one still held or viewed. Every height equals the fresh-memory path's, to the
+@pytest.mark.parametrize("method", ["fc", "dct"])
+def test_large_fft_methods_write_into_kept_memory(method, monkeypatch):
+    """Eager `"fc"` and `"dct"` of normals over `_KEEP_FROM_BYTES` (lowered here to 0) write
+    their intermediate planes into the latest call's and the height into one the caller has
+    dropped, never into one still held or viewed. Every height equals the fresh-memory path's, to the
     bit (with and without a mask, with a pixel size, in float64); normals with no valid pixel
     still raise. `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing; `release_batch_outputs` lets go."""
     from jaxps.core import _kept
@@ -199,7 +200,8 @@ def test_large_fc_writes_into_kept_memory(monkeypatch):
     monkeypatch.delenv("JAXPS_BATCH_KEEP_BYTES", raising=False)
     scene = face_scene(40)
     normals = [np.asarray(scene.normals) + np.float32([0.05 * i, 0, 0]) for i in range(4)]
-    calls = [{}, {"mask": scene.mask}, {"pixel_size": 0.25}, {"mask": scene.mask}]
+    calls = [{"method": method, **kw}
+             for kw in ({}, {"mask": scene.mask}, {"pixel_size": 0.25}, {"mask": scene.mask})]
     expected = [np.asarray(jaxps.integrate(n, **kw)) for n, kw in zip(normals, calls)]
     assert expected[0].std() > 0.1 and not np.array_equal(expected[1], expected[3])
     monkeypatch.setattr(_integrate, "_KEEP_FROM_BYTES", 0)
@@ -210,7 +212,7 @@ def test_large_fc_writes_into_kept_memory(monkeypatch):
 
     first = solve(0)
     pointer = first.unsafe_buffer_pointer()
-    assert len(_kept._FC_SCRATCH) == 1 and len(_kept._HEIGHTS) == 1
+    assert len(_kept._INTEGRATE_SCRATCH) == 1 and len(_kept._HEIGHTS) == 1
     second = solve(1)  # `first` is held: a fresh height
     assert second.unsafe_buffer_pointer() != pointer
     del first
@@ -224,15 +226,15 @@ def test_large_fc_writes_into_kept_memory(monkeypatch):
     np.testing.assert_array_equal(view, expected[1])
     for got, want in ((third, expected[2]), (fourth, expected[3])):
         np.testing.assert_array_equal(got, want)
-    assert len(_kept._FC_SCRATCH) == 1 and len(_kept._HEIGHTS) == 2
+    assert len(_kept._INTEGRATE_SCRATCH) == 1 and len(_kept._HEIGHTS) == 2
     with pytest.raises(ValueError, match="no finite"):
-        jaxps.integrate(np.full_like(normals[0], np.nan))
+        jaxps.integrate(np.full_like(normals[0], np.nan), method=method)
     with jax.enable_x64(True):
-        z = jaxps.integrate(normals[0].astype(np.float64))
+        z = jaxps.integrate(normals[0].astype(np.float64), method=method)
         assert z.dtype == jnp.float64
         np.testing.assert_allclose(z, expected[0], atol=1e-4 * np.abs(expected[0]).max())
     jaxps.release_batch_outputs()
-    assert _kept._FC_SCRATCH == [] and _kept._HEIGHTS == []
+    assert _kept._INTEGRATE_SCRATCH == [] and _kept._HEIGHTS == []
     monkeypatch.setenv("JAXPS_BATCH_KEEP_BYTES", "0")
     np.testing.assert_array_equal(solve(3), expected[3])
-    assert _kept._FC_SCRATCH == [] and _kept._HEIGHTS == []
+    assert _kept._INTEGRATE_SCRATCH == [] and _kept._HEIGHTS == []

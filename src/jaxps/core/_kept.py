@@ -41,11 +41,11 @@ _STAGE: list[np.ndarray] = []
 # (`l2_batch_solve`'s `scratch`), keyed by the `(shape, dtype)` of the chunk's stack, since a
 # batch's last chunk may be smaller than the others: never returned to a caller.
 _SCRATCH: list[tuple] = []
-# Heights of `integrate(method="fc")` calls whose normals exceed glibc's largest mmap
+# Heights of `integrate(method="fc" | "dct")` calls whose normals exceed glibc's largest mmap
 # threshold, keyed by `(shape, dtype)`, and the intermediate planes of the latest two such calls
-# (their steps and spectra: never returned to a caller), keyed the same way.
+# (never returned to a caller), keyed by the method and the planes' `(shape, dtype)`s.
 _HEIGHTS: list[tuple] = []
-_FC_SCRATCH: list[tuple] = []
+_INTEGRATE_SCRATCH: list[tuple] = []
 _LOCK = threading.Lock()
 # A single call whose normals take more bytes than this writes into kept memory: glibc maps
 # blocks above its mmap threshold, which rises to 32 MiB at most, afresh on every call.
@@ -129,5 +129,5 @@ def release_batch_outputs() -> None:
     in the same way when its normals exceed 32 MiB. Each of these is bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB; `0` keeps
     none). This frees what is kept, e.g. at the end of a stream of large captures."""
     with _LOCK:
-        for kept in (_BATCH, _SINGLE, _STAGE, _SCRATCH, _HEIGHTS, _FC_SCRATCH):
+        for kept in (_BATCH, _SINGLE, _STAGE, _SCRATCH, _HEIGHTS, _INTEGRATE_SCRATCH):
             kept.clear()

@@ -29,12 +29,25 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..core._host import cpu_top_level, has_value, to_device
-from ..core._kept import _FC_SCRATCH, _HEIGHTS, KEEP_FROM_BYTES, keep, keep_bytes, spare_outputs
+from ..core._kept import (
+    _HEIGHTS,
+    _INTEGRATE_SCRATCH,
+    KEEP_FROM_BYTES,
+    keep,
+    keep_bytes,
+    spare_outputs,
+)
 from ..core._safe import safe_sqrt
 from ..core._store import active as store_active
 from ..core._store import call as stored_call
 from ._grid import PRECONDITIONERS, bilateral, lsq_midpoint
-from ._poisson import _edge_div_of_means, _neumann_from_spectrum, _neumann_spectrum, dct_poisson
+from ._poisson import (
+    _edge_div_of_means,
+    _neumann_from_spectrum,
+    _neumann_spectrum,
+    _neumann_spectrum_parts,
+    dct_poisson,
+)
 
 # The public names are listed (and re-exported) in `jaxps.integration`.
 
@@ -54,7 +67,7 @@ _CURL_FRACTION = 0.01
 _LSQ_RTOL = 1e-4
 _BILATERAL_RTOL = 1e-3
 _NO_VALID_NORMAL = "normals has no finite, non-zero normal inside mask"
-# Eager "fc" of normals over this many bytes writes into kept memory (`_fc_kept`).
+# Eager "fc" and "dct" of normals over this many bytes write into kept memory (`_fc_kept`).
 _KEEP_FROM_BYTES = KEEP_FROM_BYTES
 
 
@@ -401,21 +414,55 @@ def _fc_kept(normals, mask, count, pixel_size):
     to a 4 KiB page is a page fault (docs/speed.md, "Why the time per pixel grows"). At
     4096x4096 the median call took 224 against 299 ms, with 32,783 against 118,808 page
     faults (`benchmarks/ab_fc_kept.py`)."""
-    budget = keep_bytes()
     shape, dtype = normals.shape[:2], normals.dtype
-    key = (shape, dtype)
-    scratch = spare_outputs(_FC_SCRATCH, key) if budget else None
-    if scratch is None:  # the first call of these shapes: zeros, so that one program serves
-        half = (shape[0], shape[1] // 2 + 1)
-        cdt = np.result_type(dtype, np.complex64)
-        scratch = (jnp.zeros((2, *shape), dtype), *(jnp.zeros(half, cdt) for _ in range(3)))
-    scratch, any_valid = _fc_spectrum_into(scratch, normals, mask, pixel_size)
-    out = spare_outputs(_HEIGHTS, key) if budget else None
-    out = jnp.zeros(shape, dtype) if out is None else out[0]
-    height = _fc_height_into(out, scratch[-1], mask, count, shape=shape)
-    keep(_FC_SCRATCH, key, scratch, budget)
-    keep(_HEIGHTS, key, (height,), budget)
+    half, cdt = (shape[0], shape[1] // 2 + 1), np.result_type(dtype, np.complex64)
+    specs = (((2, *shape), dtype), (half, cdt), (half, cdt), (half, cdt))
+    scratch, any_valid = _into_scratch("fc", specs, _fc_spectrum_into, normals, mask,
+                                       pixel_size)
+    height = _into_kept_height(_fc_height_into, dtype, scratch[-1], mask, count, shape=shape)
     return height, any_valid
+
+
+def _dct_kept(normals, mask, pixel_size):
+    """`integrate(method="dct")` as `_fc_kept` runs `"fc"`: its steps, reordered divergence,
+    that plane's half spectrum and the solve's (24 bytes a pixel) written into the latest such
+    call's, the height into a dropped one. `(height, count)`, `count` the valid normals (0:
+    none, and no height)."""
+    shape, dtype = normals.shape[:2], normals.dtype
+    half, cdt = (shape[0], shape[1] // 2 + 1), np.result_type(dtype, np.complex64)
+    specs = (((2, *shape), dtype), (shape, dtype), (half, cdt), (half, cdt))
+    scratch, valid = _into_scratch("dct", specs, _dct_spectrum_into, normals, mask)
+    count = _host_count(valid)
+    if count == 0:
+        return None, 0
+    height = _into_kept_height(_dct_height_into, dtype, scratch[-1], valid,
+                               to_device(count, dtype), pixel_size, shape=shape)
+    return height, count
+
+
+def _into_scratch(name, specs, program, *args):
+    """`program(scratch, *args)`, `scratch` the donated planes of the latest call of `name`
+    with these `(shape, dtype)` `specs` (zeros the first time, so that one program serves):
+    `(planes, *rest)`; the planes are kept for the next call."""
+    budget = keep_bytes()
+    key = (name, specs)
+    scratch = spare_outputs(_INTEGRATE_SCRATCH, key) if budget else None
+    if scratch is None:
+        scratch = tuple(jnp.zeros(shape, dtype) for shape, dtype in specs)
+    scratch, *rest = program(scratch, *args)
+    keep(_INTEGRATE_SCRATCH, key, scratch, budget)
+    return (scratch, *rest)
+
+
+def _into_kept_height(program, dtype, *args, shape):
+    """`program(out, *args, shape=shape)`, `out` one of the latest two `(shape, dtype)` heights
+    that its caller has let go of (zeros if none); the height is kept in turn."""
+    budget = keep_bytes()
+    key = (shape, np.dtype(dtype))
+    out = spare_outputs(_HEIGHTS, key) if budget else None
+    height = program(jnp.zeros(shape, dtype) if out is None else out[0], *args, shape=shape)
+    keep(_HEIGHTS, key, (height,), budget)
+    return height
 
 
 @functools.partial(jax.jit, static_argnames="cam")
@@ -428,6 +475,23 @@ def _dct_spectrum_from_normals(normals, mask, cam):
         n, valid = _unit_normals(normals, mask)
         gc, gr = _height_steps(n, valid, cam)
     return _neumann_spectrum(_edge_div_of_means(gc, gr)), valid
+
+
+@functools.partial(jax.jit, donate_argnums=0, keep_unused=True)
+def _dct_spectrum_into(scratch, normals, mask):
+    """`_dct_spectrum_from_normals` without intrinsics, writing into the donated `scratch` of
+    an earlier call (`_dct_kept`): `(steps, reordered divergence, its half spectrum,
+    spectrum), valid`."""
+    steps, valid = _stacked_steps_array(normals, mask)
+    planes, spectrum = _neumann_spectrum_parts(_edge_div_of_means(steps[0], steps[1]))
+    return (steps, *planes, spectrum), valid
+
+
+@functools.partial(jax.jit, static_argnames="shape", donate_argnums=0, keep_unused=True)
+def _dct_height_into(out, g, valid, count, pixel_size, shape):
+    """`_dct_height` without intrinsics, written into `out`, the donated buffer of a height its
+    caller has let go of (`_dct_kept`)."""
+    return _dct_height.__wrapped__(g, valid, count, pixel_size, None, shape)
 
 
 @functools.partial(jax.jit, static_argnames=("cam", "shape"))
@@ -590,16 +654,23 @@ def integrate(
         pixel_size = to_device(pixel_size, dtype)
         shape = normals.shape[:2]
         # Traced (inside a caller's program) the counts are taken there and nothing is checked.
+        # Large eager calls write into kept memory (`_fc_kept`, `_dct_kept`).
+        kept = (not traced and not store_active() and cpu_top_level(normals, mask)
+                and normals.size * normals.dtype.itemsize > _KEEP_FROM_BYTES)
         if method == "fc":
             count = None if count is None else to_device(count, dtype)
-            if (not traced and not store_active() and cpu_top_level(normals, mask)
-                    and normals.size * normals.dtype.itemsize > _KEEP_FROM_BYTES):
+            if kept:
                 height, any_valid = _fc_kept(normals, mask, count, pixel_size)
             else:
                 spectrum, any_valid = stored_call(_fc_spectrum_from_normals, normals, mask,
                                                   pixel_size)
                 height = stored_call(_fc_height, spectrum, mask, count, shape=shape)
             if not traced and not bool(any_valid):
+                raise ValueError(_NO_VALID_NORMAL)
+            return height
+        if cam is None and kept:
+            height, count = _dct_kept(normals, mask, pixel_size)
+            if count == 0:
                 raise ValueError(_NO_VALID_NORMAL)
             return height
         spectrum, valid = stored_call(_dct_spectrum_from_normals, normals, mask, cam=cam)

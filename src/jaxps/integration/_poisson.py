@@ -75,10 +75,17 @@ def _neumann_spectrum(rhs):
     ($\\cos^2$ for $N - k$: $4 - 4\\sin^2$ would cancel in float32 near $k = N$).
     The full DCT is never formed, and the twiddles are 1-D constants.
     """
+    return _neumann_spectrum_parts(rhs)[1]
+
+
+def _neumann_spectrum_parts(rhs):
+    """`_neumann_spectrum` with its two full-size intermediates: `((reordered rhs, its half
+    spectrum), spectrum)`."""
     n1, n2 = rhs.shape
     dt = np.dtype(rhs.dtype)
     ct = np.result_type(dt, np.complex64)
-    f = jnp.fft.rfft2(_reorder(rhs))  # (n1, n2 // 2 + 1)
+    r = _reorder(rhs)
+    f = jnp.fft.rfft2(r)  # (n1, n2 // 2 + 1)
     fn = jnp.roll(jnp.flip(f, 0), 1, axis=0)  # V(-k1, k2)
     t1 = np.pi * np.arange(n1)[:, None] / (2 * n1)
     t2 = np.pi * np.arange(n2 // 2 + 1)[None, :] / (2 * n2)
@@ -91,7 +98,7 @@ def _neumann_spectrum(rhs):
     inv_lam = jnp.where(lam > 0, 1 / jnp.where(lam > 0, lam, 1), 0)
     re = jnp.real(s) * inv_lam + jnp.real(d) / (c1 + c2)
     im = jnp.imag(s) / (c1 + s2) + jnp.imag(d) / (s1 + c2)
-    return 0.5 * jnp.conj(e1 * e2) * lax.complex(re, im)
+    return (r, f), 0.5 * jnp.conj(e1 * e2) * lax.complex(re, im)
 
 
 def _neumann_from_spectrum(g, shape):
