@@ -8,9 +8,9 @@ memory, interleaved in one process.
 `--size`, as it runs now (normals over 32 MiB: the intermediate planes and the height written
 into kept buffers, `_fc_kept` and `_dct_kept` in `integration/_integrate.py`) and with that
 path turned off (`_KEEP_FROM_BYTES` raised out of reach: every plane in fresh memory, as
-before). Both are timed alternately for
-`--rounds` rounds (`_common.interleaved`); the JSON holds the best and median ms of each, the
-largest difference between their heights and the minor page faults of one more call of each.
+before). Both are timed alternately for `--rounds` rounds (`_common.interleaved`); the JSON
+holds the best and median ms of each, the largest difference between their heights and the
+minor page faults of one more call of each.
 """
 
 from __future__ import annotations

@@ -191,9 +191,9 @@ def test_host_methods_refuse_a_trace(method):
 def test_large_fft_methods_write_into_kept_memory(method, monkeypatch):
     """Eager `"fc"` and `"dct"` of normals over `_KEEP_FROM_BYTES` (lowered here to 0) write
     their intermediate planes into the latest call's and the height into one the caller has
-    dropped, never into one still held or viewed. Every height equals the fresh-memory path's, to the
-    bit (with and without a mask, with a pixel size, in float64); normals with no valid pixel
-    still raise. `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing; `release_batch_outputs` lets go."""
+    dropped, never into one still held or viewed. Every height equals the fresh-memory
+    path's, to the bit (with and without a mask, with a pixel size, in float64); normals with
+    no valid pixel still raise. `JAXPS_BATCH_KEEP_BYTES=0` keeps nothing; `release_batch_outputs` lets go."""
     from jaxps.core import _kept
     from jaxps.integration import _integrate
 

@@ -1,7 +1,7 @@
 """Memory that large calls keep for reuse: L2 results and heights (a later call of the same
 shapes writes into the buffers of one the caller has let go of, instead of into fresh memory),
 a batch's aligned copy of its stack, and the intermediate planes of the weighted batch solve
-and of Frankot–Chellappa.
+and of the FFT integrators (Frankot–Chellappa and the DCT solve).
 
 XLA-CPU allocates each call's outputs with `malloc`. glibc serves a block larger than its
 mmap threshold (which rises to at most 32 MiB) with a fresh `mmap` and unmaps it on `free`,
@@ -24,7 +24,8 @@ import threading
 import numpy as np
 
 __all__ = [
-    "KEEP_FROM_BYTES", "keep", "keep_bytes", "release_batch_outputs", "result_specs", "spare_outputs",
+    "KEEP_FROM_BYTES", "keep", "keep_bytes", "release_batch_outputs", "result_specs",
+    "spare_outputs",
 ]
 
 # Entries `(key, arrays)`, newest first (`keep`, `spare_outputs`). Results, keyed by their
@@ -125,9 +126,10 @@ def release_batch_outputs() -> None:
     costs a page fault per 4 KiB (docs/speed.md, "Many captures"). A result the caller still
     holds is never written to. A batch also keeps the aligned copy of the latest unaligned
     numpy stack and the weighted solve's intermediate planes of the latest batch that dropped
-    samples. `integrate(method="fc")` keeps its latest two heights and intermediate planes
-    in the same way when its normals exceed 32 MiB. Each of these is bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB; `0` keeps
-    none). This frees what is kept, e.g. at the end of a stream of large captures."""
+    samples. `integrate(method="fc" | "dct")` keeps its latest two heights and its
+    intermediate planes in the same way when its normals exceed 32 MiB. Each of these is
+    bounded by `$JAXPS_BATCH_KEEP_BYTES` (default 1 GiB; `0` keeps none). This frees what is
+    kept, e.g. at the end of a stream of large captures."""
     with _LOCK:
         for kept in (_BATCH, _SINGLE, _STAGE, _SCRATCH, _HEIGHTS, _INTEGRATE_SCRATCH):
             kept.clear()
