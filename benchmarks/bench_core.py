@@ -2,8 +2,10 @@
 
 At 1280x1024: L2 photometric stereo (K = 4, 5, 12; K = 12 with about 5% of the samples in the
 mask dropped by a shadow threshold), Frankot–Chellappa and the DCT Poisson solve, and PS + FC
-together. Then time per pixel from 0.25 MP to 16 MP (PS K=5 and FC, numpy's PS and scipy's
-FC beside them; the sizes take turns over the rounds), and the peak resident
+together. Beside each L2 row, `bare_l2`: the least an XLA kernel does for the same solve
+(normals and albedo only), as the limit of XLA on the machine. Then time per pixel from
+0.25 MP to 16 MP (PS K=5 and FC, numpy's PS, scipy's FC and the bare kernel beside them;
+the sizes take turns over the rounds), and the peak resident
 memory of a fresh process that solves and integrates one 16 MP five-frame capture.
 
 Compile time and run time are reported apart (first call vs. the median of repeated calls,
@@ -63,6 +65,50 @@ def numpy_ps(images, pinv):
     return n.T.reshape(h, w, 3), rho.reshape(h, w)
 
 
+def bare_l2(lights, shadow=None):
+    """The least an XLA program does for L2 PS: a jitted kernel on a `(K, H, W)` stack that
+    writes only the normals `(H, W, 3)` and the albedo `(H, W)`, with no status, `n_used`,
+    residual or finiteness guard, the sums over K and the 3 axes unrolled and the lights baked
+    in as constants. With `shadow`, a sample below it gets weight 0 and each pixel solves its
+    own normal equations by cofactors, as the weighted solve does; without, $L^+$ is applied.
+
+    jaxps's rows over this kernel's, in the same run, say how far the library's core is from
+    the limit of XLA on the machine (issue 18's title), apart from numpy's speed on it."""
+    lt = np.asarray(lights, np.float64)
+    lt = lt / np.linalg.norm(lt, axis=1, keepdims=True)
+    k = len(lt)
+    ks = range(k)
+    pinv = np.linalg.pinv(lt)
+
+    def normalised(b, scale=None):
+        sq = b[0] * b[0] + b[1] * b[1] + b[2] * b[2]
+        inv = jax.lax.rsqrt(jnp.where(sq > 0, sq, 1))
+        rho = sq * inv if scale is None else sq * inv * scale
+        return jnp.stack([v * inv for v in b], -1), rho
+
+    @jax.jit
+    def clean(x):
+        return normalised([sum(float(pinv[p, j]) * x[j] for j in ks) for p in range(3)])
+
+    @jax.jit
+    def weighted(x, t):
+        w = [(x[j] >= t).astype(x.dtype) for j in ks]
+        a = [[sum(w[j] * float(lt[j, p] * lt[j, q]) for j in ks) for q in range(3)]
+             for p in range(3)]
+        r = [sum(w[j] * x[j] * float(lt[j, p]) for j in ks) for p in range(3)]
+        c = [[a[(p + 1) % 3][(q + 1) % 3] * a[(p + 2) % 3][(q + 2) % 3]
+              - a[(p + 1) % 3][(q + 2) % 3] * a[(p + 2) % 3][(q + 1) % 3] for q in range(3)]
+             for p in range(3)]  # cofactors of the symmetric A: adj(A) = C
+        det = a[0][0] * c[0][0] + a[0][1] * c[0][1] + a[0][2] * c[0][2]
+        b = [c[p][0] * r[0] + c[p][1] * r[1] + c[p][2] * r[2] for p in range(3)]
+        return normalised(b, 1 / jnp.abs(jnp.where(det != 0, det, 1)))
+
+    if shadow is None:
+        return clean
+    threshold = jnp.float32(shadow)
+    return lambda x: weighted(x, threshold)
+
+
 def fft_fc(p, q, fft=np.fft, **workers):
     """Baseline Frankot–Chellappa with the real FFTs of `fft` (numpy.fft, or scipy.fft with
     `workers=2`) on the given gradients."""
@@ -99,6 +145,15 @@ def scipy_dct_poisson(gc, gr):
     return scipy.fft.idctn(c, type=2, norm="ortho", workers=2)
 
 
+BARE = "bare XLA kernel: normals + albedo only"
+
+
+def _difference(a, b, where=None):
+    """Largest absolute difference of two normal maps (over `where`, an `(H, W)` bool)."""
+    d = np.abs(np.asarray(a, np.float64) - np.asarray(b, np.float64))
+    return float((d if where is None else d[where]).max())
+
+
 def row(rows, work, impl, run, baseline=None, **extra):
     r = {"work": work, "impl": impl, "run_s": run, **extra}
     if baseline is not None:
@@ -119,19 +174,30 @@ def core_rows(repeats, h, w):
         pinv = np.linalg.pinv(lights).astype(np.float32)
         _, base = timed(lambda: numpy_ps(images_np, pinv), repeats)
         row(rows, "ps_l2", "numpy pinv-matmul+normalise", base, K=k)
+        bare = bare_l2(lights)
+        _, floor = timed(lambda: bare(images), repeats)
+        row(rows, "ps_l2", BARE, floor, base, K=k,
+            max_normal_difference=_difference(bare(images)[0], numpy_ps(images_np, pinv)[0]))
         first, run = timed(lambda: jaxps.photometric_stereo(images, lights), repeats)
-        row(rows, "ps_l2", "jaxps", run, base, K=k, compile_s=first - run)
+        row(rows, "ps_l2", "jaxps", run, base, K=k, compile_s=first - run,
+            over_bare_kernel=run / floor)
         mask = np.asarray(scene.mask)
         if k == 12:
             # A shadow threshold at the 5th percentile of the samples in the mask.
             inside = images_np[:, mask]
             threshold = float(np.percentile(inside, 5))
             dropped = float(np.mean(inside < threshold))
+            bare = bare_l2(lights, threshold)
+            _, floor = timed(lambda: bare(images), repeats)
             first, run = timed(lambda: jaxps.photometric_stereo(
                 images, lights, mask=mask, shadow_threshold=threshold), repeats)
+            ours = jaxps.photometric_stereo(images, lights, mask=mask, shadow_threshold=threshold)
+            ok = np.asarray(ours.status) == 0
+            row(rows, "ps_l2_dropped", BARE, floor, base, K=k, max_normal_difference=_difference(
+                bare(images)[0], ours.normals, ok))
             row(rows, "ps_l2_dropped", "jaxps", run, base, K=k, compile_s=first - run,
-                dropped_fraction=dropped, pixels_dropping=float(np.mean(
-                    (inside < threshold).any(0))))
+                over_bare_kernel=run / floor, dropped_fraction=dropped,
+                pixels_dropping=float(np.mean((inside < threshold).any(0))))
         if k != 5:
             continue
         normals = jax.block_until_ready(jaxps.photometric_stereo(images, lights).normals)
@@ -169,7 +235,7 @@ def _pq(n):
 
 def scaling_rows(rounds, sizes):
     """Time per pixel for PS (K=5) and FC at each (rows, columns), with numpy's PS and scipy's
-    FC beside them as the same work's baselines.
+    FC beside them as the same work's baselines, and PS's `bare_l2` kernel.
 
     The sizes take turns over `rounds` rounds, so that the machine's slow spells fall on all
     of them alike. In each round, each size runs each method as a block of about as many
@@ -179,6 +245,7 @@ def scaling_rows(rounds, sizes):
     """
     lights = jaxps.synthetic.scanner_lights(20.0)
     pinv = np.linalg.pinv(np.asarray(lights, np.float32)).astype(np.float32)
+    bare = bare_l2(lights)
     cases, calls = {}, {}
     for h, w in sizes:
         scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(h, w), lights)
@@ -190,6 +257,7 @@ def scaling_rows(rounds, sizes):
             "ps_l2": lambda images=images: jaxps.photometric_stereo(images, lights),
             "fc": lambda normals=normals: jaxps.integrate(normals),
             "numpy_ps": lambda images_np=images_np: numpy_ps(images_np, pinv),
+            "bare_ps": lambda images=images: bare(images),
             "scipy_fc": lambda p=p, q=q: scipy_fc(p, q)}
         calls[h, w] = max(1, round(sizes[-1][0] * sizes[-1][1] / (h * w)))
         for fn in cases[h, w].values():  # compile and warm up
@@ -260,12 +328,13 @@ def main():
     for r in results["rows"]:
         ratio = f"  {r['ratio']:5.2f}x baseline" if "ratio" in r else ""
         comp = f"  (compile {r['compile_s']:.2f} s)" if "compile_s" in r else ""
-        print(f"{r['work']:>14} K={r.get('K', '-'):>2} {r['impl']:<32} "
+        print(f"{r['work']:>14} K={r.get('K', '-'):>2} {r['impl']:<41} "
               f"{1e3 * r['run_s']:8.2f} ms{ratio}{comp}")
     for r in results["scaling"]:
         print(f"{r['rows']:>5}x{r['columns']:<5} PS {r['ps_l2_ns_per_px']:6.2f} ns/px "
               f"({r['ps_l2_page_faults_per_kpx']:.2f} page faults per 1000 px; numpy "
-              f"{r['numpy_ps_ns_per_px']:.2f}), FC {r['fc_ns_per_px']:6.2f} ns/px "
+              f"{r['numpy_ps_ns_per_px']:.2f}, bare kernel {r['bare_ps_ns_per_px']:.2f}), "
+              f"FC {r['fc_ns_per_px']:6.2f} ns/px "
               f"({r['fc_page_faults_per_kpx']:.2f}; scipy {r['scipy_fc_ns_per_px']:.2f})")
     print("peak memory:", results["peak_memory"])
     _chart(results, args.out.replace(".json", ".png"))
@@ -282,7 +351,8 @@ def _chart(results, path):
                                  constrained_layout=True)
     labels = [f"{r['work']} K={r.get('K', '-')}\n{r['impl']}" for r in rows]
     ax.barh(range(len(rows)), [r["ratio"] for r in rows],
-            color=["tab:blue" if r["impl"].startswith("jaxps") else "tab:gray" for r in rows])
+            color=["tab:blue" if r["impl"].startswith("jaxps") else
+                   "tab:green" if r["impl"] == BARE else "tab:gray" for r in rows])
     ax.axvline(1, color="k", lw=0.8)
     ax.set_yticks(range(len(rows)), labels, fontsize=7)
     ax.invert_yaxis()
@@ -297,6 +367,9 @@ def _chart(results, path):
             label="numpy PS")
     bx.plot(mp, [r["scipy_fc_ns_per_px"] for r in sc], "s--", color="tab:orange", alpha=0.5,
             label="scipy FC")
+    if "bare_ps_ns_per_px" in sc[0]:
+        bx.plot(mp, [r["bare_ps_ns_per_px"] for r in sc], "o:", color="tab:green",
+                label="bare XLA kernel (normals + albedo)")
     bx.set_xscale("log")
     bx.set_xlabel("megapixels")
     bx.set_ylabel("ns per pixel")

@@ -59,6 +59,24 @@ def core_ratio(run: dict, work: str, k: int | None = None) -> float:
     return row["ratio"]
 
 
+def bare_note(core: list[dict], work: str, k: int) -> str:
+    """The bare XLA kernel's ratio to numpy and jaxps's to the bare kernel (`bench_core.py`'s
+    `bare_l2`), in the runs that measured it, as a note."""
+    pairs = []
+    for run in core:
+        bare = [r for r in run["rows"] if r["work"] == work and r.get("K") == k
+                and r["impl"].startswith("bare")]
+        ours = [r for r in run["rows"] if r["work"] == work and r.get("K") == k
+                and r["impl"].startswith("jaxps") and "over_bare_kernel" in r]
+        if bare and ours:
+            pairs.append((bare[0]["ratio"], ours[0]["over_bare_kernel"]))
+    if not pairs:
+        return ""
+    return ("bare XLA kernel of normals and albedo over numpy, same runs: "
+            + ", ".join(f"{b:.2f}x" for b, _ in pairs) + "; jaxps over it: "
+            + ", ".join(f"{o:.2f}x" for _, o in pairs))
+
+
 def spread(run: dict, key: str) -> float:
     """Largest over smallest time per pixel across `bench_core.py`'s image sizes."""
     values = [s[key] for s in run["scaling"]]
@@ -86,11 +104,13 @@ def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: dict | None
         src = "bench_core.py"
         out += [
             target("L2 PS, K=5, 1 MP, over numpy pinv-matmul + normalise",
-                   [core_ratio(r, "ps_l2", 5) for r in core], 0.6, source=src),
+                   [core_ratio(r, "ps_l2", 5) for r in core], 0.6, source=src,
+                   note=bare_note(core, "ps_l2", 5)),
             target("L2 PS, K=12, over numpy", [core_ratio(r, "ps_l2", 12) for r in core], 1.0,
-                   source=src),
+                   source=src, note=bare_note(core, "ps_l2", 12)),
             target("L2 PS, K=12, ~5% of samples dropped, over numpy",
-                   [core_ratio(r, "ps_l2_dropped", 12) for r in core], 1.5, source=src),
+                   [core_ratio(r, "ps_l2_dropped", 12) for r in core], 1.5, source=src,
+                   note=bare_note(core, "ps_l2_dropped", 12)),
             target("Frankot-Chellappa from the normals, over scipy.fft on the gradients",
                    [core_ratio(r, "fc") for r in core], 1.0, source=src),
             target("DCT Poisson from the normals, over scipy.fft's from the gradients",
@@ -102,7 +122,9 @@ def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: dict | None
                    [core_ratio(r, "ps_l2+fc", 5) for r in core], 1.0, source=src),
             target("time per pixel 0.26-16 MP, L2 PS: largest over smallest",
                    [spread(r, "ps_l2_ns_per_px") for r in core], 1.3, source=src,
-                   note=baseline_spread(core, "numpy_ps_ns_per_px", "numpy's PS, same runs")),
+                   note="; ".join(filter(None, [
+                       baseline_spread(core, "numpy_ps_ns_per_px", "numpy's PS, same runs"),
+                       baseline_spread(core, "bare_ps_ns_per_px", "the bare XLA kernel")]))),
             target("time per pixel 0.26-16 MP, FC: largest over smallest",
                    [spread(r, "fc_ns_per_px") for r in core], 1.3, source=src,
                    note=baseline_spread(core, "scipy_fc_ns_per_px", "scipy's FC, same runs")),

@@ -83,3 +83,46 @@ def test_targets_hold_every_run_to_its_bound_in_the_right_direction():
     assert "| no |" in targets.markdown([numpy_stacks]) and "| yes |" in targets.markdown(
         [aligned])
     assert "| 1 of 2 |" in targets.markdown([k5])
+
+
+def test_target_notes_give_the_bare_kernel_where_a_run_measured_it():
+    targets = pytest.importorskip("benchmarks.targets")
+    old, new = _core_run(0.7), _core_run(0.8, (8.0, 12.0))
+    new["rows"] += [{"work": "ps_l2", "impl": "bare XLA kernel: normals + albedo only", "K": 5,
+                     "ratio": 0.5}]
+    next(r for r in new["rows"] if r["impl"] == "jaxps" and r["K"] == 5)["over_bare_kernel"] = 1.6
+    for s, v in zip(new["scaling"], (4.0, 6.0), strict=True):
+        s["bare_ps_ns_per_px"] = v
+    table = {r["target"]: r for r in targets.rows([old, new], [], [], None, None, None)}
+    note = table["L2 PS, K=5, 1 MP, over numpy pinv-matmul + normalise"]["note"]
+    assert note == ("bare XLA kernel of normals and albedo over numpy, same runs: 0.50x; "
+                    "jaxps over it: 1.60x")
+    assert table["L2 PS, K=12, over numpy"]["note"] == ""  # no run measured it at K=12
+    assert "the bare XLA kernel: 1.50x" in table[
+        "time per pixel 0.26-16 MP, L2 PS: largest over smallest"]["note"]
+
+
+@pytest.mark.parametrize("dropping", [False, True])
+def test_bare_l2_kernel_solves_what_jaxps_solves(dropping):
+    """`bench_core.py`'s bare kernel is the same solve, else its time is no floor."""
+    import numpy as np
+
+    import jaxps
+
+    bench_core = pytest.importorskip("benchmarks.bench_core")
+
+    k = 12 if dropping else 5
+    lights = (bench_core.ring_lights(k) if dropping
+              else jaxps.synthetic.scanner_lights(20.0, k=k))
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(48, 40), lights)
+    images = np.asarray(scene.images)
+    mask = np.asarray(scene.mask)
+    threshold = float(np.percentile(images[:, mask], 5)) if dropping else None
+    normals, albedo = (np.asarray(a) for a in bench_core.bare_l2(lights, threshold)(images))
+    ours = jaxps.photometric_stereo(images, lights, mask=mask, shadow_threshold=threshold)
+    ok = np.asarray(ours.status) == 0
+    assert ok.sum() > 0.5 * mask.sum()
+    if dropping:
+        assert (images[:, ok] < threshold).any()  # some solved pixel drops a sample
+    np.testing.assert_allclose(normals[ok], np.asarray(ours.normals)[ok], atol=2e-6)
+    np.testing.assert_allclose(albedo[ok], np.asarray(ours.albedo)[ok], rtol=2e-5)
