@@ -17,6 +17,7 @@ each ended by `block_until_ready`). The ratio is jaxps / baseline: below 1 is fa
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import resource
@@ -72,8 +73,11 @@ def bare_l2(lights, shadow=None):
     in as constants. With `shadow`, a sample below it gets weight 0 and each pixel solves its
     own normal equations by cofactors, as the weighted solve does; without, $L^+$ is applied.
 
-    jaxps's rows over this kernel's, in the same run, say how far the library's core is from
-    the limit of XLA on the machine (issue 18's title), apart from numpy's speed on it."""
+    Each call writes into the buffers of the previous call's result (donated: that result is
+    gone), as jaxps's large calls write into kept ones, so that at 16 MP the kernel maps no
+    fresh memory. jaxps's rows over this kernel's, in the same run, say how far the library's
+    core is from the limit of XLA on the machine (issue 18's title), apart from numpy's
+    speed on it."""
     lt = np.asarray(lights, np.float64)
     lt = lt / np.linalg.norm(lt, axis=1, keepdims=True)
     k = len(lt)
@@ -86,12 +90,14 @@ def bare_l2(lights, shadow=None):
         rho = sq * inv if scale is None else sq * inv * scale
         return jnp.stack([v * inv for v in b], -1), rho
 
-    @jax.jit
-    def clean(x):
+    into = functools.partial(jax.jit, donate_argnums=0, keep_unused=True)
+
+    @into
+    def clean(out, x):
         return normalised([sum(float(pinv[p, j]) * x[j] for j in ks) for p in range(3)])
 
-    @jax.jit
-    def weighted(x, t):
+    @into
+    def weighted(out, x, t):
         w = [(x[j] >= t).astype(x.dtype) for j in ks]
         a = [[sum(w[j] * float(lt[j, p] * lt[j, q]) for j in ks) for q in range(3)]
              for p in range(3)]
@@ -103,10 +109,18 @@ def bare_l2(lights, shadow=None):
         b = [c[p][0] * r[0] + c[p][1] * r[1] + c[p][2] * r[2] for p in range(3)]
         return normalised(b, 1 / jnp.abs(jnp.where(det != 0, det, 1)))
 
-    if shadow is None:
-        return clean
-    threshold = jnp.float32(shadow)
-    return lambda x: weighted(x, threshold)
+    last = {}
+
+    def call(x):
+        h, w = x.shape[1:]
+        out = last.pop((h, w), None)
+        if out is None:
+            out = (jnp.zeros((h, w, 3), x.dtype), jnp.zeros((h, w), x.dtype))
+        res = clean(out, x) if shadow is None else weighted(out, x, jnp.float32(shadow))
+        last[h, w] = res
+        return res
+
+    return call
 
 
 def fft_fc(p, q, fft=np.fft, **workers):
