@@ -9,9 +9,10 @@ the sizes take turns over the rounds), and the peak resident
 memory of a fresh process that solves and integrates one 16 MP five-frame capture.
 
 Compile time and run time are reported apart (first call vs. the median of repeated calls,
-each ended by `block_until_ready`). The ratio is jaxps / baseline: below 1 is faster.
+each ended by `block_until_ready`). Each 1 MP row takes turns with its baseline over the
+rounds (`--repeats` of them). The ratio is jaxps / baseline: below 1 is faster.
 
-    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_core.py [--repeats 20] [--quick] [--out FILE]
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_core.py [--repeats 30] [--quick] [--out FILE]
 """
 
 from __future__ import annotations
@@ -35,20 +36,14 @@ import jaxps
 from jaxps.integration._poisson import dct_poisson
 
 try:
-    from benchmarks._common import block, environment, page_faults, time_calls
+    from benchmarks._common import block, environment, interleaved, page_faults
 except ImportError:  # run as a script
     import pathlib
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import block, environment, page_faults, time_calls
+    from benchmarks._common import block, environment, interleaved, page_faults
 
 H, W = 1024, 1280
-
-
-def timed(fn, repeats):
-    """(first-call seconds, median seconds of `repeats` further calls)."""
-    t = time_calls(fn, repeats)
-    return t["first_call_s"], t["run_s_median"]
 
 
 def ring_lights(k):
@@ -177,7 +172,17 @@ def row(rows, work, impl, run, baseline=None, **extra):
     return r
 
 
+def together(cases, repeats):
+    """`_common.interleaved` over `repeats` rounds: `{name: (first-call s minus the median,
+    median s)}`, so that a slow spell of the machine falls on a row and its baseline alike."""
+    first, seconds = interleaved(cases, repeats)
+    med = {name: statistics.median(s) for name, s in seconds.items()}
+    return {name: (first[name] - med[name], med[name]) for name in cases}
+
+
 def core_rows(repeats, h, w):
+    """The 1 MP rows. Each row is timed in the same interleaved rounds as its baseline (and,
+    for L2, the bare kernel), the median of `repeats` calls."""
     rows = []
     surface = jaxps.synthetic.face_like(h, w)
     for k in (4, 5, 12):
@@ -186,59 +191,62 @@ def core_rows(repeats, h, w):
         images = jax.device_put(scene.images)
         images_np = np.asarray(scene.images)
         pinv = np.linalg.pinv(lights).astype(np.float32)
-        _, base = timed(lambda: numpy_ps(images_np, pinv), repeats)
-        row(rows, "ps_l2", "numpy pinv-matmul+normalise", base, K=k)
-        bare = bare_l2(lights)
-        _, floor = timed(lambda: bare(images), repeats)
-        row(rows, "ps_l2", BARE, floor, base, K=k,
-            max_normal_difference=_difference(bare(images)[0], numpy_ps(images_np, pinv)[0]))
-        first, run = timed(lambda: jaxps.photometric_stereo(images, lights), repeats)
-        row(rows, "ps_l2", "jaxps", run, base, K=k, compile_s=first - run,
-            over_bare_kernel=run / floor)
         mask = np.asarray(scene.mask)
+        bare = bare_l2(lights)
+        cases = {"numpy": lambda: numpy_ps(images_np, pinv), "bare": lambda: bare(images),
+                 "jaxps": lambda: jaxps.photometric_stereo(images, lights)}
         if k == 12:
             # A shadow threshold at the 5th percentile of the samples in the mask.
             inside = images_np[:, mask]
             threshold = float(np.percentile(inside, 5))
-            dropped = float(np.mean(inside < threshold))
-            bare = bare_l2(lights, threshold)
-            _, floor = timed(lambda: bare(images), repeats)
-            first, run = timed(lambda: jaxps.photometric_stereo(
-                images, lights, mask=mask, shadow_threshold=threshold), repeats)
+            bare_dropping = bare_l2(lights, threshold)
+            cases["bare_dropped"] = lambda: bare_dropping(images)
+            cases["jaxps_dropped"] = lambda: jaxps.photometric_stereo(
+                images, lights, mask=mask, shadow_threshold=threshold)
+        t = together(cases, repeats)
+        base = t["numpy"][1]
+        row(rows, "ps_l2", "numpy pinv-matmul+normalise", base, K=k)
+        row(rows, "ps_l2", BARE, t["bare"][1], base, K=k,
+            max_normal_difference=_difference(bare(images)[0], numpy_ps(images_np, pinv)[0]))
+        row(rows, "ps_l2", "jaxps", t["jaxps"][1], base, K=k, compile_s=t["jaxps"][0],
+            over_bare_kernel=t["jaxps"][1] / t["bare"][1])
+        if k == 12:
             ours = jaxps.photometric_stereo(images, lights, mask=mask, shadow_threshold=threshold)
             ok = np.asarray(ours.status) == 0
-            row(rows, "ps_l2_dropped", BARE, floor, base, K=k, max_normal_difference=_difference(
-                bare(images)[0], ours.normals, ok))
-            row(rows, "ps_l2_dropped", "jaxps", run, base, K=k, compile_s=first - run,
-                over_bare_kernel=run / floor, dropped_fraction=dropped,
+            row(rows, "ps_l2_dropped", BARE, t["bare_dropped"][1], base, K=k,
+                max_normal_difference=_difference(bare_dropping(images)[0], ours.normals, ok))
+            row(rows, "ps_l2_dropped", "jaxps", t["jaxps_dropped"][1], base, K=k,
+                compile_s=t["jaxps_dropped"][0],
+                over_bare_kernel=t["jaxps_dropped"][1] / t["bare_dropped"][1],
+                dropped_fraction=float(np.mean(inside < threshold)),
                 pixels_dropping=float(np.mean((inside < threshold).any(0))))
         if k != 5:
             continue
         normals = jax.block_until_ready(jaxps.photometric_stereo(images, lights).normals)
         p, q = (np.asarray(a) for a in jaxps.gradients_from_normals(
             normals, jnp.ones((h, w), bool)))
-        _, fc_base = timed(lambda: scipy_fc(p, q), repeats)
-        row(rows, "fc", "scipy rfft2 float32, 2 workers", fc_base)
-        _, run = timed(lambda: fft_fc(p, q), repeats)
-        row(rows, "fc", "numpy rfft2 (float64)", run, fc_base)
-        first, run = timed(lambda: jaxps.integrate(normals), repeats)
-        row(rows, "fc", "jaxps", run, fc_base, compile_s=first - run)
-
         gc, gr = p, -q
-        _, dct_base = timed(lambda: scipy_dct_poisson(gc, gr), repeats)
-        row(rows, "dct", "scipy dctn float32, 2 workers", dct_base)
-        first, run = timed(lambda: jaxps.integrate(normals, method="dct"), repeats)
-        row(rows, "dct", "jaxps", run, dct_base, compile_s=first - run)
-        # the solve alone, from the same height steps as scipy's (no normals, no masked mean)
         gcj, grj = jnp.asarray(gc), jnp.asarray(gr)
-        first, run = timed(lambda: dct_poisson(gcj, grj), repeats)
-        row(rows, "dct_solve", "jaxps dct_poisson", run, dct_base, compile_s=first - run)
-
-        _, both_base = timed(lambda: scipy_fc(*_pq(numpy_ps(images_np, pinv)[0])), repeats)
-        row(rows, "ps_l2+fc", "numpy PS + scipy FC", both_base, K=k)
-        first, run = timed(lambda: jaxps.integrate(
-            jaxps.photometric_stereo(images, lights).normals), repeats)
-        row(rows, "ps_l2+fc", "jaxps", run, both_base, K=k, compile_s=first - run)
+        t = together({
+            "scipy_fc": lambda: scipy_fc(p, q), "numpy_fc": lambda: fft_fc(p, q),
+            "fc": lambda: jaxps.integrate(normals),
+            "scipy_dct": lambda: scipy_dct_poisson(gc, gr),
+            "dct": lambda: jaxps.integrate(normals, method="dct"),
+            # the solve alone, from the same height steps as scipy's (no normals, no mean)
+            "dct_solve": lambda: dct_poisson(gcj, grj),
+            "numpy_scipy": lambda: scipy_fc(*_pq(numpy_ps(images_np, pinv)[0])),
+            "ps_fc": lambda: jaxps.integrate(jaxps.photometric_stereo(images, lights).normals),
+        }, repeats)
+        row(rows, "fc", "scipy rfft2 float32, 2 workers", t["scipy_fc"][1])
+        row(rows, "fc", "numpy rfft2 (float64)", t["numpy_fc"][1], t["scipy_fc"][1])
+        row(rows, "fc", "jaxps", t["fc"][1], t["scipy_fc"][1], compile_s=t["fc"][0])
+        row(rows, "dct", "scipy dctn float32, 2 workers", t["scipy_dct"][1])
+        row(rows, "dct", "jaxps", t["dct"][1], t["scipy_dct"][1], compile_s=t["dct"][0])
+        row(rows, "dct_solve", "jaxps dct_poisson", t["dct_solve"][1], t["scipy_dct"][1],
+            compile_s=t["dct_solve"][0])
+        row(rows, "ps_l2+fc", "numpy PS + scipy FC", t["numpy_scipy"][1], K=k)
+        row(rows, "ps_l2+fc", "jaxps", t["ps_fc"][1], t["numpy_scipy"][1], K=k,
+            compile_s=t["ps_fc"][0])
     return rows
 
 
@@ -311,7 +319,7 @@ def peak_rss(h, w):
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeats", type=int, default=20)
+    ap.add_argument("--repeats", type=int, default=30)
     ap.add_argument("--quick", action="store_true",
                     default=os.environ.get("JAXPS_BENCH_QUICK") == "1")
     ap.add_argument("--out", default=os.path.join(os.path.dirname(__file__), "results",
