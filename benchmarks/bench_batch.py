@@ -3,7 +3,8 @@
 
 Run: `OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_batch.py [--quick]
 [--out PATH]` -> benchmarks/results/batch.json (or PATH) and batch.png. Baseline in the same
-run: N single calls. The `_dropped` rows set a shadow threshold at the 5th percentile of the
+run: N single calls, every row called once in each of 9 interleaved rounds, the median
+round. The `_dropped` rows set a shadow threshold at the 5th percentile of the
 samples in the mask, so every capture takes the weighted solve; the `_k12` rows take 12 lights.
 The batch solves the stack as one image (`_l2_one_image`); the `lights_per_capture` rows give
 the same lights once per capture, `(N, K, 3)`. A batch keeps its latest two results and
@@ -45,6 +46,7 @@ QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 # --quick (used by `python -m benchmarks --quick`): 256x320, for a smoke run, marked in the JSON.
 H, W, K, N = (256, 320, 5, 2) if QUICK else (1024, 1280, 5, 8)
 N_BIG = 8 if QUICK else 64
+ROUNDS = 3 if QUICK else 9  # interleaved rounds of the throughput rows
 
 
 try:
@@ -251,10 +253,15 @@ def main():
         caps_aligned, per_capture, mask=mask)
     rows["batch_l2_aligned_lights_per_capture_dropped"] = lambda: jaxps.photometric_stereo_batch(
         caps_aligned, per_capture, mask=mask, shadow_threshold=threshold)
+    # Every row once per round, so that a slow spell of the machine falls on a batch and its
+    # single calls alike; each figure is the median round.
+    first, seconds = interleaved(rows, ROUNDS)
     for name, fn in rows.items():
-        _, first, run = timed(fn, repeats=5)
-        res[name] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run,
+        run = float(np.median(seconds[name]))
+        res[name] = {"compile_plus_first_s": first[name], "run_s": run,
+                     "run_s_best": min(seconds[name]), "captures_per_s": N / run,
                      "page_faults": page_faults(fn)}
+    res["rounds"] = ROUNDS
     # Throughput ratios: each batch row against the single calls on the same input.
     for key, batch, single in (
             ("batch_over_single_throughput", "batch_l2", "single_calls_l2"),
