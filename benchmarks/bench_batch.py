@@ -3,8 +3,7 @@
 
 Run: `OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_batch.py [--quick]
 [--out PATH]` -> benchmarks/results/batch.json (or PATH) and batch.png. Baseline in the same
-run: N single calls. The rows take turns over 7 rounds, each running 4 calls in a row, and
-each figure is the median of the last 3 calls of every block (`in_blocks`). The `_dropped` rows set a shadow threshold at the 5th percentile of the
+run: N single calls. The `_dropped` rows set a shadow threshold at the 5th percentile of the
 samples in the mask, so every capture takes the weighted solve; the `_k12` rows take 12 lights.
 The batch solves the stack as one image (`_l2_one_image`); the `lights_per_capture` rows give
 the same lights once per capture, `(N, K, 3)`. A batch keeps its latest two results and
@@ -32,7 +31,6 @@ import platform
 import resource
 import subprocess
 import sys
-import time
 
 import jax
 import jax.numpy as jnp
@@ -47,7 +45,6 @@ QUICK = "--quick" in sys.argv or os.environ.get("JAXPS_BENCH_QUICK") == "1"
 # --quick (used by `python -m benchmarks --quick`): 256x320, for a smoke run, marked in the JSON.
 H, W, K, N = (256, 320, 5, 2) if QUICK else (1024, 1280, 5, 8)
 N_BIG = 8 if QUICK else 64
-ROUNDS, BLOCK = (2, 3) if QUICK else (7, 4)  # the throughput rows' rounds and calls (`in_blocks`)
 
 
 try:
@@ -71,32 +68,6 @@ def captures(n, seed=0, k=K):
     caps = np.stack([base * rng.uniform(0.85, 1.15, (k, 1, 1)).astype(np.float32)
                      for _ in range(n)]).astype(np.float32)
     return caps, lights, np.asarray(scene.mask)
-
-
-def in_blocks(rows, rounds, block):
-    """Time each zero-argument callable of `rows` in blocks of `block` calls in a row, the rows
-    taking turns over `rounds` rounds, so that a slow spell of the machine falls on a batch and
-    its single calls alike, while each block still runs as a loop of the same call does: with
-    the memory that its earlier calls left (kept results, glibc's reused blocks). The first
-    call of each block, which pays for the rows before it, is left out.
-
-    **Returns:** `(first, seconds, faults)`: `{name: s}` of each row's first call (compile +
-    run), `{name: [s, ...]}` of the later calls, and `{name: n}` the minor page faults of one
-    more call at the end of the row's last block."""
-    def call(fn):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        return time.perf_counter() - t0
-
-    first = {name: call(fn) for name, fn in rows.items()}
-    seconds, faults = {name: [] for name in rows}, {}
-    for r in range(rounds):
-        for name, fn in rows.items():
-            call(fn)
-            seconds[name] += [call(fn) for _ in range(block - 1)]
-            if r == rounds - 1:
-                faults[name] = page_faults(fn)
-    return first, seconds, faults
 
 
 def emitters(rounds=8):
@@ -280,13 +251,10 @@ def main():
         caps_aligned, per_capture, mask=mask)
     rows["batch_l2_aligned_lights_per_capture_dropped"] = lambda: jaxps.photometric_stereo_batch(
         caps_aligned, per_capture, mask=mask, shadow_threshold=threshold)
-    first, seconds, faults = in_blocks(rows, ROUNDS, BLOCK)
-    for name in rows:
-        run = float(np.median(seconds[name]))
-        res[name] = {"compile_plus_first_s": first[name], "run_s": run,
-                     "run_s_best": min(seconds[name]), "captures_per_s": N / run,
-                     "page_faults": faults[name]}
-    res["rounds"], res["block"] = ROUNDS, BLOCK
+    for name, fn in rows.items():
+        _, first, run = timed(fn, repeats=5)
+        res[name] = {"compile_plus_first_s": first, "run_s": run, "captures_per_s": N / run,
+                     "page_faults": page_faults(fn)}
     # Throughput ratios: each batch row against the single calls on the same input.
     for key, batch, single in (
             ("batch_over_single_throughput", "batch_l2", "single_calls_l2"),
