@@ -45,7 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import jaxps
-from jaxps.ps._semicalibrated import visibility_spectrum
+from jaxps.ps._visibility import visibility_spectrum
 
 try:
     from benchmarks import bench_faces as faces

@@ -152,6 +152,18 @@ def test_import_jaxps_is_light_and_reaches_every_subpackage():
     assert set(out["subs"]) == set(LAYERS)
 
 
+def test_reconstruct_command_imports_no_optimiser_or_plotting_library():
+    """`jaxps reconstruct` imports its stages (acquisition, ps, integration, report) at start:
+    none may pull in what only other methods use. `jaxps.ps` once imported equinox and
+    optimistix for `flash_visibility`, which doubled the command's start-up."""
+    heavy = (*HEAVY, "equinox", "optimistix", "lineax", "skimage", "scipy", "trimesh")
+    code = ("import json, sys, jaxps.cli._reconstruct\n"
+            "print(json.dumps(sorted(m for m in sys.argv[1:] if m in sys.modules)))\n")
+    proc = subprocess.run([sys.executable, "-c", code, *heavy], capture_output=True, text=True,
+                          check=True, timeout=300)
+    assert json.loads(proc.stdout) == []
+
+
 @pytest.mark.parametrize("unit", [u for u in LAYERS if (SRC / u).is_dir()])
 def test_subpackage_says_what_it_takes_and_gives_and_is_reexported(unit):
     import importlib

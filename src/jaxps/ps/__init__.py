@@ -10,7 +10,7 @@ from ._intensities import INTENSITY_METHODS, intensity_estimate
 from ._l2 import PSResult
 from ._near import NearResult, near_photometric_stereo
 from ._photometric_stereo import PS_METHODS, photometric_stereo
-from ._semicalibrated import flash_visibility
+from ._visibility import flash_visibility
 
 __all__ = [
     "INTENSITY_METHODS",

@@ -35,13 +35,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Float
 
 from ..core._host import NO_YNN, CpuTuned, cpu_top_level
 from ..core._linalg import REL_DET_MIN, solve3
 from ._l2 import PSResult, ps_l2_eager
+from ._visibility import flash_visibility
 
-__all__ = ["flash_visibility", "ps_semi_calibrated"]
+__all__ = ["ps_semi_calibrated"]
 
 
 def _geo_normalise(e):
@@ -133,36 +133,6 @@ def _fit_intensities(images, lights, mask, sample_mask, thresholds, stride, solv
 # Without YNNPACK fusions (`core._host.NO_YNN`): the LM steps' sums over the K frames ran
 # faster in XLA's own loops (`benchmarks/bench_ynn.py`).
 _fit_intensities = CpuTuned(_fit_intensities, NO_YNN, jit=eqx.filter_jit)
-
-
-def flash_visibility(lights: Float[ArrayLike, "K 3"]) -> Float[Array, ""] | np.floating:
-    """How strongly the weakest change of the flash strengths shows in the data: the smallest
-    singular value of $\\delta \\mapsto N\\,\\mathrm{diag}(\\delta)\\,L$ over the $K-1$
-    directions other than a common scale, for unit lights $L$ `(K, 3)` and $N$ `(K-3, K)`
-    orthonormal rows spanning the null space of $L^T$.
-
-    Scaling frame $k$ by $1 + \\delta_k$ leaves every pixel exactly Lambertian (with other
-    normals) where $\\mathrm{diag}(\\delta) L = L A$ for some $3 \\times 3$ $A$; $N$ measures the
-    part that is not. 0 means some intensities cannot be told from the data at all; for
-    lights near the view axis, $\\delta$ linear in the lights' offsets nearly is such a change
-    and tilts the recovered face. Scale-free; measured values and what they did on real
-    faces are in docs/captures.md ("Which lights can self-calibrate").
-    """
-    return visibility_spectrum(lights)[np.shape(lights)[0] - 2]
-
-
-def visibility_spectrum(lights):
-    """Every singular value of `flash_visibility`'s map, largest first (numpy for host
-    lights, JAX for traced ones). For K >= 5 the last is the common scale's 0; K = 4 gives
-    the three others."""
-    xp = jnp if isinstance(lights, jax.core.Tracer) else np
-    lights = lights if xp is jnp else np.asarray(lights, np.float64)
-    if lights.ndim != 2 or lights.shape[1] != 3 or lights.shape[0] < 4:
-        raise ValueError(f"lights must be (K, 3) with K >= 4, got {lights.shape}")
-    lights = lights / xp.linalg.norm(lights, axis=-1, keepdims=True)
-    null = xp.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
-    jac = (null[:, :, None] * lights[None]).transpose(0, 2, 1).reshape(-1, lights.shape[0])
-    return xp.linalg.svd(jac, compute_uv=False)
 
 
 def _default_solver(dtype) -> optx.LevenbergMarquardt:

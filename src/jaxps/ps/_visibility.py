@@ -1,0 +1,45 @@
+"""Which light layouts can self-calibrate their flash strengths: `flash_visibility`.
+
+A module of its own, with no optimiser, so that importing `jaxps.ps` (as `load_capture` and
+`jaxps reconstruct` do) does not load equinox and optimistix, which only the semi-calibrated
+fit uses (`_semicalibrated.py`, imported when that method runs).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+__all__ = ["flash_visibility", "visibility_spectrum"]
+
+
+def flash_visibility(lights: Float[ArrayLike, "K 3"]) -> Float[Array, ""] | np.floating:
+    """How strongly the weakest change of the flash strengths shows in the data: the smallest
+    singular value of $\\delta \\mapsto N\\,\\mathrm{diag}(\\delta)\\,L$ over the $K-1$
+    directions other than a common scale, for unit lights $L$ `(K, 3)` and $N$ `(K-3, K)`
+    orthonormal rows spanning the null space of $L^T$.
+
+    Scaling frame $k$ by $1 + \\delta_k$ leaves every pixel exactly Lambertian (with other
+    normals) where $\\mathrm{diag}(\\delta) L = L A$ for some $3 \\times 3$ $A$; $N$ measures the
+    part that is not. 0 means some intensities cannot be told from the data at all; for
+    lights near the view axis, $\\delta$ linear in the lights' offsets nearly is such a change
+    and tilts the recovered face. Scale-free; measured values and what they did on real
+    faces are in docs/captures.md ("Which lights can self-calibrate").
+    """
+    return visibility_spectrum(lights)[np.shape(lights)[0] - 2]
+
+
+def visibility_spectrum(lights):
+    """Every singular value of `flash_visibility`'s map, largest first (numpy for host
+    lights, JAX for traced ones). For K >= 5 the last is the common scale's 0; K = 4 gives
+    the three others."""
+    xp = jnp if isinstance(lights, jax.core.Tracer) else np
+    lights = lights if xp is jnp else np.asarray(lights, np.float64)
+    if lights.ndim != 2 or lights.shape[1] != 3 or lights.shape[0] < 4:
+        raise ValueError(f"lights must be (K, 3) with K >= 4, got {lights.shape}")
+    lights = lights / xp.linalg.norm(lights, axis=-1, keepdims=True)
+    null = xp.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
+    jac = (null[:, :, None] * lights[None]).transpose(0, 2, 1).reshape(-1, lights.shape[0])
+    return xp.linalg.svd(jac, compute_uv=False)
