@@ -7,9 +7,9 @@ the first run filled. Wall time is measured around the process; the per-stage ti
 its summary.json, and the rest (start-up, imports, tracing, the summary) is wall minus stages.
 `jaxps relight` (the default `wrap_ggx` fit, relit images and a 36-frame GIF) runs the same
 way, cold then warm, on the 192x168 frames. Also timed: `jaxps --help`, `python -c "import
-jaxps"`, `python -c "import jaxps.cli._reconstruct"` (what the command imports before it
-starts), `python -c "import jax"` and `python -c "import ml_dtypes"` (best of 3; the installed
-ml_dtypes version is recorded).
+jaxps"`, `python -c "from jaxps.cli import _reconstruct"` (what the command imports before
+it starts), `python -c "import jax"` and `python -c "import ml_dtypes"` (best of 3; the
+installed ml_dtypes version is recorded).
 
 Garbage collection: warm runs of the largest size alternate between the `jaxps` script
 (`jaxps.cli.console`, with `gc.freeze`) and `jaxps.cli.main` without it (`gc_freeze`).
@@ -82,7 +82,7 @@ def main():
                        ("import jaxps", [sys.executable, "-c", "import jaxps"]),
                        # what `jaxps reconstruct` imports before it starts (no optimiser)
                        ("import the reconstruct command",
-                        [sys.executable, "-c", "import jaxps.cli._reconstruct"]),
+                        [sys.executable, "-c", "from jaxps.cli import _reconstruct"]),
                        ("import jax", [sys.executable, "-c", "import jax"]),
                        ("import ml_dtypes", [sys.executable, "-c", "import ml_dtypes"])]:
         res["start_up_s"][name] = min(_wall(argv, env) for _ in range(3))
