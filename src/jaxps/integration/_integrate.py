@@ -362,18 +362,12 @@ def _orthographic_steps(normals, mask):
     return jnp.where(ok, -nx * inv * slope, 0), jnp.where(ok, ny * inv * slope, 0), ok
 
 
-def _stacked_steps(normals, mask):
-    """`_orthographic_steps` with the two step planes written as one `(2, H, W)` array behind
-    an `optimization_barrier`. Left free, XLA-CPU wrote $1/|n|$ and the slope to memory for
-    the two planes' passes to share; this way one pass computes both steps from the normals:
-    at 1 MP the median FC took 4-26% less time and DCT 15-34% less, with the same heights
-    (five runs of `benchmarks/bench_stacked_steps.py`)."""
-    steps, ok = _stacked_steps_array(normals, mask)
-    return steps[0], steps[1], ok
-
-
 def _stacked_steps_array(normals, mask):
-    """`_stacked_steps`'s `(2, H, W)` steps as one array, and the valid mask."""
+    """`_orthographic_steps` with the two step planes written as one `(2, H, W)` array behind
+    an `optimization_barrier`, and the valid mask. Left free, XLA-CPU wrote $1/|n|$ and the
+    slope to memory for the two planes' passes to share; this way one pass computes both steps
+    from the normals: at 1 MP the median FC took 4-26% less time and DCT 15-34% less, with
+    the same heights (five runs of `benchmarks/bench_stacked_steps.py`)."""
     dzdc, dzdr, ok = _orthographic_steps(normals, mask)
     return jax.lax.optimization_barrier(jnp.stack([dzdc, dzdr])), ok
 
@@ -470,11 +464,18 @@ def _dct_spectrum_from_normals(normals, mask, cam):
     """`integrate(method="dct")` in two programs: this one, up to the solve's half spectrum
     (and the valid mask), then `_dct_height`."""
     if cam is None:
-        gc, gr, valid = _stacked_steps(normals, mask)
-    else:
-        n, valid = _unit_normals(normals, mask)
-        gc, gr = _height_steps(n, valid, cam)
+        return _dct_first(normals, mask)[1:]
+    n, valid = _unit_normals(normals, mask)
+    gc, gr = _height_steps(n, valid, cam)
     return _neumann_spectrum(_edge_div_of_means(gc, gr)), valid
+
+
+def _dct_first(normals, mask):
+    """`_dct_spectrum_from_normals` without intrinsics, with its intermediate planes:
+    `((steps, reordered divergence, its half spectrum), spectrum, valid)`."""
+    steps, valid = _stacked_steps_array(normals, mask)
+    planes, spectrum = _neumann_spectrum_parts(_edge_div_of_means(steps[0], steps[1]))
+    return (steps, *planes), spectrum, valid
 
 
 @functools.partial(jax.jit, donate_argnums=0, keep_unused=True)
@@ -482,9 +483,8 @@ def _dct_spectrum_into(scratch, normals, mask):
     """`_dct_spectrum_from_normals` without intrinsics, writing into the donated `scratch` of
     an earlier call (`_dct_kept`): `(steps, reordered divergence, its half spectrum,
     spectrum), valid`."""
-    steps, valid = _stacked_steps_array(normals, mask)
-    planes, spectrum = _neumann_spectrum_parts(_edge_div_of_means(steps[0], steps[1]))
-    return (steps, *planes, spectrum), valid
+    planes, spectrum, valid = _dct_first(normals, mask)
+    return (*planes, spectrum), valid
 
 
 @functools.partial(jax.jit, static_argnames="shape", donate_argnums=0, keep_unused=True)
