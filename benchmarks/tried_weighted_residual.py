@@ -34,21 +34,16 @@ except ImportError:  # run as a script
     from benchmarks._common import arguments, environment, write_json
 
 
-def pixel_weighted_closed_form(x, usable, inside, lights, thresholds):
+def pixel_weighted_closed_form(x, usable, inside, lights, thresholds, all_finite=False):
     """`_l2._pixel_weighted` (grey) with the residual from the normal equations."""
-    ks = range(len(x))
-    dtype = x[0][0].dtype
-    x, g, used, cases = _l2._samples(x, usable, thresholds)
-    w = [u.astype(dtype) for u in used]
-    wl = [[w[k] * lights[k][p] for p in range(3)] for k in ks]
-    a = [[sum(wl[k][p] * lights[k][q] for k in ks) for q in range(3)] for p in range(3)]
-    r = [sum(wl[k][p] * g[k] for k in ks) for p in range(3)]
+    g, w, cases, n_used, a, r, _ = _l2._weighted_system(x, usable, lights, thresholds,
+                                                        all_finite)
     b, rel_det = solve3(a, r)
     b = [b[p] for p in range(3)]
-    sq = jnp.maximum(sum(w[k] * g[k] * g[k] for k in ks) - sum(b[p] * r[p] for p in range(3)),
-                     0)
+    sq = jnp.maximum(sum(wk * gk * gk for wk, gk in zip(w, g))
+                     - sum(b[p] * r[p] for p in range(3)), 0)
     cases.append((rel_det < REL_DET_MIN, Status.DEGENERATE))
-    return _l2._finish(b, sq, _l2._count(used), cases, inside, None)
+    return _l2._finish(lambda: (b, sq, None), n_used, cases, inside, backfacing_from_b=True)
 
 
 def main(repeats=15):
