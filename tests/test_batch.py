@@ -427,6 +427,16 @@ def test_batch_rejects_bad_lights_and_mask():
                                        mask=np.ones((3, 3), bool))
 
 
+def test_batch_rejects_images_on_a_0_to_255_scale():
+    _, images = _captures(2)
+    with pytest.raises(ValueError, match=r"images must be in \[0, 1\]"):
+        jaxps.photometric_stereo_batch(np.asarray(images) * 255, jaxps.synthetic.scanner_lights())
+    res = jaxps.photometric_stereo_batch(np.asarray(images) * 255,
+                                         jaxps.synthetic.scanner_lights(), saturation=255)
+    ref = jaxps.photometric_stereo_batch(np.asarray(images), jaxps.synthetic.scanner_lights())
+    np.testing.assert_array_equal(res.status, ref.status)
+
+
 @pytest.mark.parametrize("shape", [(0, 5, 8, 8), (2, 5, 0, 8)])
 def test_batch_rejects_empty_stacks(shape):
     with pytest.raises(ValueError, match="at least one capture, pixel and channel"):

@@ -444,6 +444,98 @@ def test_bad_input(scene):
         jaxps.relight(model, s["normals"], s["albedo"], s["train"], mask=s["mask"][1:])
 
 
+def small_face():
+    """A 24 x 20 Lambertian face under the five scanner lights: images, lights, normals,
+    albedo, mask (numpy)."""
+    sc = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(24, 20),
+                                      jaxps.synthetic.scanner_lights(20.0))
+    return tuple(np.asarray(x) for x in (sc.images, sc.lights, sc.normals, sc.albedo, sc.mask))
+
+
+SMALL = {"n_samples": 600, "max_steps": 3, "key": 0}
+
+
+@pytest.mark.parametrize("method", ["wrap_ggx", "mlp_ratio", "mlp", "lambertian", "delaunay"])
+def test_bad_normals_and_albedo_are_dropped(method):
+    """A NaN normal, a zero normal and (for the MLP on intensity, whose scale is the median
+    albedo) a NaN albedo leave the fit exactly as if their pixels were outside the mask."""
+    im, lights, normals, albedo, mask = small_face()
+    bad = [(12, 10), (8, 6), (15, 12)] if method == "mlp" else [(12, 10), (8, 6)]
+    assert all(mask[p] for p in bad)
+    nn, aa = normals.copy(), albedo.copy()
+    nn[bad[0]], nn[bad[1]] = np.nan, 0.0
+    if method == "mlp":
+        aa[bad[2]] = np.nan
+    out = mask.copy()
+    for p in bad:
+        out[p] = False
+    got = jaxps.fit_brdf(im, nn, aa, lights, mask=mask, method=method, **SMALL)
+    want = jaxps.fit_brdf(im, nn, aa, lights, mask=out, method=method, **SMALL)
+    assert np.isfinite(got.fit.mse) and got.fit.n_samples == want.fit.n_samples
+    np.testing.assert_allclose(got.fit.mse, want.fit.mse, rtol=1e-6)
+    relit = np.asarray(jaxps.relight(got, normals, albedo, lights, mask=mask))
+    np.testing.assert_allclose(relit, np.asarray(jaxps.relight(want, normals, albedo, lights,
+                                                               mask=mask)), rtol=1e-6)
+    # the parametric model keeps the given (NaN) normal where it fitted none; else all finite
+    assert np.isnan(relit).sum() == (len(lights) if method == "wrap_ggx" else 0)
+
+
+def test_auto_information_criterion_leaves_out_bad_normals():
+    """`method="auto"` scores every model on all frames by its BIC: a NaN normal's pixel is
+    left out, as if outside the mask."""
+    im, lights, normals, albedo, mask = small_face()
+    nn, out = normals.copy(), mask.copy()
+    nn[12, 10], out[12, 10] = np.nan, False
+    got, want = (jaxps.fit_brdf(im, nn, albedo, lights, mask=m, method="auto", **SMALL)
+                 for m in (mask, out))
+    bic = got.fit.choice["bic"]
+    assert set(bic) == {"lambertian", "mlp", "mlp_ratio"}
+    for name, value in want.fit.choice["bic"].items():
+        np.testing.assert_allclose(bic[name], value, rtol=1e-6, err_msg=name)
+
+
+def test_bad_options():
+    im, lights, normals, albedo, mask = small_face()
+    args = (im, normals, albedo, lights)
+    for name, value in (("support_deg", 0.0), ("support_deg", -5), ("max_steps", 0),
+                        ("max_steps", -1), ("bound", -1), ("bound", float("nan")),
+                        ("hidden", (0,)), ("min_count", -1)):
+        with pytest.raises(ValueError, match=f"{name} must be"):
+            jaxps.fit_brdf(*args, mask=mask, method="mlp", **{name: value})
+    with pytest.raises(ValueError, match="albedo is not > 0 at any masked pixel"):
+        jaxps.fit_brdf(im, normals, np.zeros_like(albedo), lights, mask=mask)
+
+
+def test_score_relighting_leaves_out_bad_pixels_and_rejects_bad_input(scene, fitted):
+    """A NaN normal and a NaN albedo: scored as if outside the mask. Integer images, an empty
+    mask and a scale not > 0 are refused."""
+    s = scene
+    lights = jaxps.lights_from_angles([12.0, -12.0, 40.0], [10.0, -10.0, 5.0])
+    obs = render_non_lambertian(s["normals"], s["albedo"], lights)
+    nn, aa, out = s["normals"].copy(), s["albedo"].copy(), s["mask"].copy()
+    nn[20, 20], aa[15, 22] = np.nan, np.nan
+    assert s["mask"][20, 20] and s["mask"][15, 22]
+    out[20, 20] = out[15, 22] = False
+    model = fitted["mlp"]
+    got = jaxps.score_relighting(model, obs, nn, aa, lights, mask=s["mask"])
+    want = jaxps.score_relighting(model, obs, nn, aa, lights, mask=out)
+    assert np.isfinite(got.model["raw_60"]) and np.isfinite(got.lambertian["gain_30"])
+    for key in want.model:
+        np.testing.assert_allclose(got.model[key], want.model[key], rtol=1e-6, err_msg=key)
+        np.testing.assert_allclose(got.lambertian[key], want.lambertian[key], rtol=1e-6)
+    np.testing.assert_allclose(got.gains["model"], want.gains["model"], rtol=1e-6)
+    args = (s["normals"], s["albedo"], lights)
+    with pytest.raises(ValueError, match="images must be a floating"):
+        jaxps.score_relighting(model, (obs * 255).astype(np.uint8), *args)
+    with pytest.raises(ValueError, match="mask is empty"):
+        jaxps.score_relighting(model, obs, *args, mask=np.zeros_like(s["mask"]))
+    for scale in (0, -1, float("nan")):
+        with pytest.raises(ValueError, match="scale must be a positive"):
+            jaxps.score_relighting(model, obs, *args, scale=scale)
+    with pytest.raises(ValueError, match="no usable sample"):
+        jaxps.score_relighting(model, np.full_like(obs, np.nan), *args, mask=s["mask"])
+
+
 # --------------------------------------------------------------------------- command line
 
 

@@ -124,6 +124,46 @@ def test_bad_input(normals, kwargs, match):
 def test_normals_from_height_bad_input():
     with pytest.raises(ValueError, match="2-D height map"):
         jaxps.normals_from_height(np.zeros((3, 3, 1), np.float32))
+    for size in (0.0, -1.0, float("nan")):  # were NaN normals, or x and y flipped
+        with pytest.raises(ValueError, match="pixel_size must be positive and finite"):
+            jaxps.normals_from_height(np.zeros((4, 4), np.float32), pixel_size=size)
+
+
+def test_gradients_from_normals_checks_its_input_and_takes_none_for_every_pixel():
+    _, n = periodic_surface()
+    n = np.asarray(n, np.float32)
+    p, q = jaxps.gradients_from_normals(n, None)  # None failed inside the jitted kernel
+    nz = np.maximum(n[..., 2], 0.05)
+    np.testing.assert_allclose(p, -n[..., 0] / nz, rtol=1e-6)
+    np.testing.assert_allclose(q, -n[..., 1] / nz, rtol=1e-6)
+    h, w = n.shape[:2]
+    for bad, match in ((n[..., :2], r"normals must be \(H, W, 3\)"),  # was garbage gradients
+                       (np.moveaxis(n, -1, 0), r"normals must be \(H, W, 3\)"),
+                       (n.astype(np.int32), "floating point")):
+        with pytest.raises(ValueError, match=match):
+            jaxps.gradients_from_normals(bad, None)
+    with pytest.raises(ValueError, match=rf"mask must have shape \(H, W\) = \({h}, {w}\)"):
+        jaxps.gradients_from_normals(n, np.ones((w + 1, h), bool))
+
+
+def test_normals_from_height_keeps_holes_local():
+    """A NaN height is a pixel with no data: it gets (0, 0, 1), and its neighbours take the
+    one-sided differences that an explicit mask without it gives (it used to make its four
+    neighbours NaN, with or without a mask)."""
+    rng = np.random.default_rng(5)
+    z = rng.normal(size=(17, 19)).astype(np.float32)
+    holes = np.zeros(z.shape, bool)
+    holes[8, 9] = holes[0, 3] = True
+    with_nan = np.where(holes, np.nan, z)
+    expected = np.asarray(jaxps.normals_from_height(z, mask=~holes, pixel_size=0.5))
+    for mask in (None, np.ones(z.shape, bool)):
+        got = np.asarray(jaxps.normals_from_height(with_nan, mask=mask, pixel_size=0.5))
+        np.testing.assert_array_equal(got, expected)
+    np.testing.assert_array_equal(expected[holes], [[0, 0, 1], [0, 0, 1]])
+    # without holes the unmasked path is the plain central difference
+    np.testing.assert_allclose(np.asarray(jaxps.normals_from_height(z, pixel_size=0.5)),
+                               np.asarray(jaxps.normals_from_height(z, mask=np.ones(z.shape, bool),
+                                                                    pixel_size=0.5)), atol=1e-6)
 
 
 K_CAMERA = np.array([[90.0, 0.0, 30.5], [0.0, 95.0, 27.0], [0.0, 0.0, 1.0]])

@@ -65,5 +65,14 @@ def test_near_step_limit_and_bad_input():
         jaxps.near_photometric_stereo(scene.images, positions[:3])
     with pytest.raises(ValueError, match="max_steps"):
         jaxps.near_photometric_stereo(scene.images, positions, max_steps=0)
+    eight_bit = (np.asarray(scene.images) * 255).astype(np.uint8)  # was: every pixel INVALID
+    with pytest.raises(ValueError, match="images must be floating point"):
+        jaxps.near_photometric_stereo(eight_bit, positions)
+    h, w = np.shape(scene.images)[1:3]
+    with pytest.raises(ValueError, match=rf"height0 must be a scalar or \(H, W\) = \({h}, {w}\)"):
+        jaxps.near_photometric_stereo(scene.images, positions, height0=np.zeros((w, h)))
+    for tol in (-1.0, float("nan"), 0.0):
+        with pytest.raises(ValueError, match="tol must be positive and finite"):
+            jaxps.near_photometric_stereo(scene.images, positions, tol=tol)
     with pytest.raises(ValueError, match="origin"):
         jaxps.near_light_field(np.zeros((2, 3)), np.zeros((2, 2, 3)))

@@ -141,6 +141,26 @@ def test_bad_input():
                       TEST)
 
 
+def test_nan_sample_is_dropped_like_a_saturated_one():
+    """A NaN image sample (weight 0) must not reach the residuals: the fit equals the one with
+    that sample saturated instead (also never fitted)."""
+    surf, albedo = face(32)
+    images = np.where(surf.mask, albedo * np.maximum(
+        np.einsum("kc,hwc->khw", TRAIN, np.asarray(surf.normals)), 0), 0).astype(np.float32)
+    r, c = np.argwhere(np.asarray(surf.mask))[40]
+    fits = []
+    for value in (np.nan, 2.0):
+        bad = images.copy()
+        bad[2, r, c] = value
+        fits.append(jaxps.fit_brdf(bad, surf.normals, albedo, TRAIN, mask=surf.mask,
+                                   method="wrap_ggx", max_steps=5))
+    got, want = fits
+    assert np.isfinite(got.fit.mse) and got.fit.n_samples == want.fit.n_samples
+    np.testing.assert_allclose(got.fit.mse, want.fit.mse, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(got.params.shape), np.asarray(want.params.shape),
+                               rtol=1e-6)
+
+
 def half_diff_numpy(n, l):
     """(θh, θd, φd) of Rusinkiewicz (1998) for one unit normal and light, view (0, 0, 1), by
     rotating into the half vector's frame."""

@@ -311,6 +311,27 @@ def test_bad_input(kwargs, match):
         jaxps.photometric_stereo(images, lights, **args)
 
 
+def test_images_on_a_0_to_255_scale_are_rejected_not_failed_silently():
+    """Float images on an 8- or 16-bit scale used to come back with every pixel SATURATED
+    and no error; the check reads a few pixels of each frame, wherever they are held."""
+    s = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(40, 36),
+                                     jaxps.synthetic.scanner_lights())
+    images = np.asarray(s.images)
+    for scaled in (images * 255, jax.device_put(images * 65535),
+                   np.stack([images * 255] * 3, -1)):  # grey, on the device, colour
+        with pytest.raises(ValueError, match=r"images must be in \[0, 1\]: .*Divide 8-bit"):
+            jaxps.photometric_stereo(scaled, s.lights, mask=s.mask)
+    # On the images' own scale, the same solve
+    own = jaxps.photometric_stereo(images * 255, s.lights, mask=s.mask, saturation=255)
+    ref = jaxps.photometric_stereo(images, s.lights, mask=s.mask)
+    np.testing.assert_array_equal(own.status, ref.status)
+    np.testing.assert_allclose(own.normals, ref.normals, atol=1e-6)
+    # [0, 1] data after a gain correction (values up to 1.3, some saturated) is solved
+    bright = jaxps.photometric_stereo(images * 1.3, s.lights, mask=s.mask)
+    counts = jaxps.status_counts(bright.status)
+    assert counts["OK"] > 0.5 * int(np.sum(s.mask)), counts
+
+
 def test_coplanar_lights_rejected_with_condition_number():
     lights = jaxps.lights_from_angles([0, 20, -20, 40], [0, 0, 0, 0])
     with pytest.raises(ValueError, match="condition number"):

@@ -80,6 +80,17 @@ def test_render_lambertian_matches_numpy():
             np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=2e-6)
 
 
+def test_render_lambertian_bad_input():
+    surf = jaxps.synthetic.sphere(8)
+    normals, albedo = np.asarray(surf.normals), np.ones((8, 8), np.float32)
+    with pytest.raises(ValueError, match="normals must be floating point, got dtype uint8"):
+        jaxps.render_lambertian((normals * 255).astype(np.uint8), albedo, EIGHT)
+    lights = np.array(EIGHT)
+    lights[3, 1] = np.nan
+    with pytest.raises(ValueError, match="lights contain NaN"):
+        jaxps.render_lambertian(normals, albedo, lights)
+
+
 def test_render_matches_angle_form_and_gradients_finite():
     surf = jaxps.synthetic.sphere(24, max_zenith_deg=80)
     n = np.asarray(surf.normals, np.float64)
@@ -265,6 +276,25 @@ def test_fit_status_codes():
     assert np.all(np.isfinite(np.asarray(onep.sigma)))
 
 
+def test_fit_given_albedo_drops_non_finite_pixels():
+    """`refit_albedo=False`: a NaN albedo pixel is left out (as if outside the mask); sigma
+    is recovered globally and per region."""
+    images, normals, albedo, lights, mask = scene(0.4, noise=0.0, h=32)
+    bad = np.array(albedo)
+    bad[16, 16] = np.nan
+    out = np.array(mask)
+    out[16, 16] = False
+    labels = np.where(np.asarray(mask), np.arange(32)[None, :] // 16, -1)
+    for per in ("global", "region"):
+        kw = {"refit_albedo": False, "per": per, "labels": labels if per == "region" else None}
+        got = jaxps.fit_roughness(images, normals, bad, lights, mask=mask, **kw)
+        want = jaxps.fit_roughness(images, normals, albedo, lights, mask=out, **kw)
+        np.testing.assert_allclose(np.asarray(got.sigma), 0.4, atol=1e-3)
+        np.testing.assert_array_equal(np.asarray(got.status), Status.OK)
+        np.testing.assert_allclose(np.asarray(got.sigma), np.asarray(want.sigma), rtol=1e-5)
+        np.testing.assert_array_equal(np.asarray(got.n_samples), np.asarray(want.n_samples))
+
+
 def test_fit_bad_input():
     images, normals, albedo, lights, mask = scene(0.2, h=16)
     with pytest.raises(ValueError, match="per"):
@@ -380,6 +410,17 @@ def test_lambertian_check_synthetic():
         jaxps.lambertian_check(images, normals, albedo, lights, bin_deg=0)
 
 
+def test_lambertian_check_bad_input():
+    images, normals, albedo, lights, mask = scene(0.0, noise=0, h=16)
+    with pytest.raises(ValueError, match="form must be one of"):
+        jaxps.lambertian_check(images, normals, albedo, lights, mask=mask, sigma=0.2,
+                               form="qualitatve")
+    with pytest.raises(ValueError, match="no usable samples"):
+        jaxps.lambertian_check(images, normals, albedo, lights, mask=np.zeros((16, 16), bool))
+    with pytest.raises(ValueError, match="no usable samples"):
+        jaxps.lambertian_check(images, normals, jnp.zeros_like(albedo), lights, mask=mask)
+
+
 def test_compare_models_synthetic():
     surface = jaxps.synthetic.sphere(40, max_zenith_deg=60)
     lights = jaxps.lights_from_angles([0, 25, -25, 0, 0, 40, -40, 15, -15, 30],
@@ -394,6 +435,14 @@ def test_compare_models_synthetic():
         assert mc.region_choice == [expected]
     assert mc.rmse["oren_nayar"] < 0.5 * mc.rmse["lambertian"]
     assert abs(mc.sigma - 0.4) < 0.03
+
+
+def test_compare_models_empty_mask():
+    lights = jaxps.lights_from_angles([0, 25, -25, 0, 0, 15], [0, 0, 0, 25, -25, 15])
+    images = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(24, 20), lights).images
+    with pytest.raises(ValueError, match="mask is empty"):
+        jaxps.compare_models(images, lights, train=np.array([1, 1, 1, 1, 1, 0], bool),
+                             mask=np.zeros((24, 20), bool))
 
 
 # --------------------------------------------------------------------------------- real data

@@ -80,6 +80,100 @@ def test_shift_frames_equal_scipy_ndimage_shift():
                                grey[:, :-1, 2:], atol=1e-6)
 
 
+def test_shift_frames_beyond_the_spline_padding():
+    # Shifts over 10 px took samples outside the 12-sample padding (a broadcast error); they
+    # repeat the edge as scipy does. A shift of a whole frame is refused by name.
+    from jaxps.acquisition._register import _shift
+
+    grey = np.random.default_rng(4).random((3, 40, 33)).astype(np.float32)
+    shifts = np.array([[15.3, -1.7], [-39.5, 32.9], [11.99, -20.0]])
+    ours = _shift(grey, shifts)
+    for f, s, o in zip(grey, shifts, ours):
+        np.testing.assert_allclose(o, ndimage.shift(f, s, order=3, mode="nearest"), atol=2e-7,
+                                   rtol=0)
+    with pytest.raises(ValueError, match=r"shifts must be smaller than the frame \(H, W\) = "
+                                         r"\(40, 33\), got \[0.0, 33.0\] for frame 2"):
+        jaxps.shift_frames(grey, [[1.0, 2.0], [0.0, 0.0], [0.0, 33.0]])
+    with pytest.raises(ValueError, match="smaller than the frame"):
+        jaxps.shift_frames(grey, np.full((3, 2), 100.0))
+
+
+def test_non_finite_pixels_left_out_of_shift_estimate():
+    """A NaN in a moved frame and an inf in the reference leave every measured shift within
+    0.05 px of the shifts without them (the NaN made its whole frame NaN: 0.8 px off)."""
+    scene = face_scene(64)
+    moved = np.stack([_fourier_shift(im, s) for im, s in zip(np.asarray(scene.images), SHIFTS)])
+    moved = moved.astype(np.float32)
+    clean = jaxps.estimate_shifts(moved, mask=scene.mask)
+    bad = moved.copy()
+    bad[2, 30, 28] = np.nan  # inside the face
+    bad[0, 20, 40] = np.inf
+    np.testing.assert_allclose(jaxps.estimate_shifts(bad, mask=scene.mask), clean, atol=0.05)
+    bad[3] = np.nan  # nothing to correlate: no motion measured, and no warning
+    assert np.all(jaxps.estimate_shifts(bad, mask=scene.mask)[3] == 0)
+
+
+def test_non_finite_pixels_stay_local_when_shifted():
+    """Output pixels whose spline taps include a NaN are NaN: a 4 x 4 block for a sub-pixel
+    shift, one pixel along an axis with an integer shift; the others are those of the frame
+    with the NaN filled in from its neighbours, and match the finite frame's away from it."""
+    rng = np.random.default_rng(1)
+    frames = ndimage.gaussian_filter(rng.random((3, 32, 32)), (0, 2, 2)).astype(np.float32)
+    bad = frames.copy()
+    bad[:, 10, 12] = np.nan
+    shifts = np.array([[0.3, -0.6], [1.0, -2.5], [0.0, 0.0]])
+    out = np.asarray(jaxps.shift_frames(bad, shifts))
+    want = np.zeros((3, 32, 32), bool)
+    want[0, 9:13, 10:14] = True  # rows y with 10 in floor(y - 0.3) - 1 .. + 2, etc.
+    want[1, 11, 8:12] = True
+    want[2, 10, 12] = True  # a zero shift leaves the frame as it is
+    np.testing.assert_array_equal(np.isnan(out), want)
+    filled = bad.copy()
+    filled[:, 10, 12] = np.nanmean(bad[:, 9:12, 11:14], axis=(1, 2))
+    ok = ~want
+    np.testing.assert_allclose(out[ok], np.asarray(jaxps.shift_frames(filled, shifts))[ok],
+                               atol=1e-6)
+    # The filled value is up to 0.009 off; the spline's ringing from it shrinks 3.7x a pixel.
+    far = ok.copy()
+    far[:, 6:17, 6:18] = False
+    np.testing.assert_allclose(out[far], np.asarray(jaxps.shift_frames(frames, shifts))[far],
+                               atol=1e-4)
+
+
+def test_register_frames_keeps_nan_local():
+    """One NaN pixel: the motion is still measured and undone, and only the 16 pixels that
+    interpolate it are NaN afterwards (the whole frame was)."""
+    scene = face_scene(64)
+    moved = np.stack([_fourier_shift(im, s) for im, s in zip(np.asarray(scene.images), SHIFTS)])
+    moved = moved.astype(np.float32)
+    moved[3, 30, 28] = np.nan
+    reg = jaxps.register_frames(moved, mask=scene.mask)
+    assert reg.registered
+    assert np.max(np.abs(reg.shifts - SHIFTS)) < 0.1
+    nan = np.isnan(np.asarray(reg.frames))
+    assert nan.sum() == 16 and nan[3].sum() == 16
+    ys, xs = np.nonzero(nan[3])  # moved back by -(0.6, 2.8): around (29.4, 25.2)
+    assert ys.min() >= 27 and ys.max() <= 31 and xs.min() >= 23 and xs.max() <= 27
+
+
+@pytest.mark.parametrize("bad", [0, -5, 2.5, True, None])
+def test_upsample_must_be_a_positive_integer(bad):
+    frames = np.asarray(face_scene(32).images)
+    with pytest.raises(ValueError, match=f"upsample must be a positive integer, got {bad}"):
+        jaxps.estimate_shifts(frames, upsample=bad)
+    with pytest.raises(ValueError, match="upsample must be a positive integer"):
+        jaxps.register_frames(frames, upsample=bad)
+
+
+def test_normalization_must_be_known():
+    frames = np.asarray(face_scene(32).images)
+    with pytest.raises(ValueError, match=r"normalization must be one of \('phase', None\), "
+                                         r"got 'phse'"):
+        jaxps.estimate_shifts(frames, normalization="phse")
+    plain = jaxps.estimate_shifts(frames, normalization=None)
+    assert plain.shape == (5, 2) and np.all(np.isfinite(plain))
+
+
 def test_shifts_match_scikit_image_on_real_frames(data):
     """The rewritten search against scikit-image's `phase_cross_correlation` (the reference
     implementation of Guizar-Sicairos et al. 2008) on the same windowed crops of real faces,

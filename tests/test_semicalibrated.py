@@ -43,6 +43,33 @@ def test_intensity_estimates_mean_and_frontal():
         jaxps.intensity_estimate(images, scene.lights, method="none"), np.ones(5))
 
 
+def test_intensity_estimates_skip_non_finite_pixels_and_reject_bad_lights():
+    scene, images = _scaled()
+    mask = np.asarray(scene.mask)
+    bad = images.copy()
+    bad[1, 20, 20] = np.nan  # inside the mask, one frame
+    bad[3, 21, 22] = np.inf
+    assert mask[20, 20] and mask[21, 22]
+    keep = mask.copy()
+    keep[20, 20] = keep[21, 22] = False  # the pixels finite in every frame
+    for method in ("mean", "frontal"):
+        np.testing.assert_allclose(
+            jaxps.intensity_estimate(bad, scene.lights, mask=mask, method=method),
+            jaxps.intensity_estimate(images, scene.lights, mask=keep, method=method), rtol=1e-6)
+    flipped = np.asarray(scene.lights).copy()
+    flipped[1, 2] = -0.3  # a light toward the back: l_z < 0
+    with pytest.raises(ValueError, match=r"l_z, which must be > 0.*light\(s\) \[1\]"):
+        jaxps.intensity_estimate(images, flipped, mask=mask, method="frontal")
+    zero = np.asarray(scene.lights).copy()
+    zero[4] = 0
+    with pytest.raises(ValueError, match=r"lights \[4\] are zero vectors"):
+        jaxps.intensity_estimate(images, zero, mask=mask, method="frontal")
+    for method in ("mean", "frontal", "semi_calibrated"):
+        with pytest.raises(ValueError, match="mask is empty"):
+            jaxps.intensity_estimate(images, scene.lights, mask=np.zeros_like(mask),
+                                     method=method)
+
+
 def test_known_intensities_match_scaled_lights():
     scene, images = _scaled()
     res = jaxps.photometric_stereo(images, scene.lights, mask=scene.mask,

@@ -48,6 +48,15 @@ def shift_frames(
 ) -> Float[Array, "K H W *C"]:
     """Move each frame by `(dy, dx)` pixels: cubic-spline interpolation, edges repeated.
 
+    **Arguments:**
+    - `frames`: `(K, H, W)` or `(K, H, W, C)`.
+    - `shifts`: `(K, 2)` finite (dy, dx) per frame, each smaller than the frame
+      (`|dy| < H`, `|dx| < W`); positive moves the content down/right.
+
+    Non-finite pixels stay local: every output pixel whose spline samples include one is NaN,
+    the rest are interpolated as if the pixel held the mean of its finite neighbours (a frame
+    with zero shift is returned as is).
+
     **Returns:** frames of the same shape and dtype.
     """
     arr = np.asarray(frames)
@@ -57,6 +66,11 @@ def shift_frames(
                          f"and {shifts.shape}")
     if not np.all(np.isfinite(shifts)):
         raise ValueError("shifts must be finite")
+    too_far = np.any(np.abs(shifts) >= arr.shape[1:3], axis=1)
+    if too_far.any():
+        k = int(np.argmax(too_far))
+        raise ValueError(f"shifts must be smaller than the frame (H, W) = {arr.shape[1:3]}, "
+                         f"got {shifts[k].tolist()} for frame {k}")
     return jnp.asarray(_shift(arr, shifts))
 
 
@@ -65,24 +79,54 @@ def _shift(arr, shifts, order=3):
 
     Spline interpolation of `order` 3 (images) or 1 (masks) with the edge repeated outside:
     `scipy.ndimage.shift(frame, (dy, dx), order=order, mode="nearest")` written out (the same
-    12-sample edge padding before the prefilter, so equal to float32 rounding), because
-    importing `scipy.ndimage` took 0.45 s of every command-line run that moved its frames.
+    12-sample edge padding before the prefilter, so equal to float32 rounding; more for shifts
+    over 10 px, whose samples would fall outside it), because importing `scipy.ndimage` took
+    0.45 s of every command-line run that moved its frames. Non-finite pixels: see
+    `shift_frames`.
     """
     out = np.empty_like(arr)
-    pad = [(SPLINE_PAD, SPLINE_PAD)] * 2 + [(0, 0)] * (arr.ndim - 3)
+    floating = np.issubdtype(arr.dtype, np.floating)
     for i, (dy, dx) in enumerate(shifts):
         if dy == 0 and dx == 0:
             out[i] = arr[i]
             continue
-        c = np.pad(np.asarray(arr[i], np.float64), pad, mode="edge")
+        p = max(SPLINE_PAD, int(np.ceil(max(abs(dy), abs(dx)))) + 2)
+        pad = [(p, p)] * 2 + [(0, 0)] * (arr.ndim - 3)
+        frame = np.asarray(arr[i], np.float64)
+        bad = None
+        if floating and not np.isfinite(frame.sum()):  # the sum: all finite, tested cheaply
+            # The prefilter would spread a NaN over the whole frame: fill it in first.
+            bad = ~np.isfinite(frame)
+            frame = _fill(frame, bad)
+        c = np.pad(frame, pad, mode="edge")
         if order == 3:
             c = _spline_coefficients(_spline_coefficients(c, 0), 1)
-        moved = _move(_move(c, dy, 0, order), dx, 1, order)
+        moved = _move(_move(c, dy, 0, order, p), dx, 1, order, p)
+        if bad is not None:
+            # Output pixels whose interpolation taps hold a filled pixel are unknown. Along an
+            # axis with an integer shift the spline reproduces its samples: one tap only.
+            b = np.pad(bad.astype(np.float64), pad, mode="edge")
+            b = _move(_move(b, dy, 0, order if dy % 1 else 1, p), dx, 1,
+                      order if dx % 1 else 1, p)
+            moved[b > 0] = np.nan
         if np.issubdtype(arr.dtype, np.integer):  # rounded and clipped, as scipy does
             info = np.iinfo(arr.dtype)
             moved = np.clip(np.rint(moved), info.min, info.max)
         out[i] = moved
     return out
+
+
+def _fill(frame, bad):
+    """`frame` (H, W[, C]) with each `bad` pixel set to the mean of the good ones among its
+    3 x 3 neighbours, or to the frame's (channel's) good mean where it has none."""
+    h, w = frame.shape[:2]
+    pad = [(1, 1)] * 2 + [(0, 0)] * (frame.ndim - 2)
+    good = np.pad(~bad, pad).astype(np.float64)
+    vals = np.pad(np.where(bad, 0.0, frame), pad)
+    near = lambda a: sum(a[i:i + h, j:j + w] for i in range(3) for j in range(3))
+    total, count = near(vals), near(good)
+    mean = vals.sum(axis=(0, 1)) / np.maximum(good.sum(axis=(0, 1)), 1)
+    return np.where(bad, np.where(count > 0, total / np.maximum(count, 1), mean), frame)
 
 
 SPLINE_PAD = 12  # edge samples scipy.ndimage pads before its prefilter (mode "nearest")
@@ -105,8 +149,8 @@ def _spline_coefficients(x, axis):
     return np.moveaxis(6.0 * x, 0, axis)
 
 
-def _move(c, s, axis, order):
-    """Samples `c` (padded by `SPLINE_PAD` along `axis`) at `y - s` for each output `y`: the
+def _move(c, s, axis, order, pad=SPLINE_PAD):
+    """Samples `c` (padded by `pad` along `axis`) at `y - s` for each output `y`: the
     order-3 B-spline of coefficients `c`, or linear interpolation of samples `c` (order 1)."""
     start = int(np.floor(-s))
     f = -s - start
@@ -116,12 +160,12 @@ def _move(c, s, axis, order):
         g = 1 - f
         taps = ((start - 1, g**3 / 6), (start, 2 / 3 - f * f + f**3 / 2),
                 (start + 1, 2 / 3 - g * g + g**3 / 2), (start + 2, f**3 / 6))
-    n = c.shape[axis] - 2 * SPLINE_PAD
+    n = c.shape[axis] - 2 * pad
     out = 0.0
     for offset, weight in taps:
         if weight != 0:
             index = [slice(None)] * c.ndim
-            index[axis] = slice(SPLINE_PAD + offset, SPLINE_PAD + offset + n)
+            index[axis] = slice(pad + offset, pad + offset + n)
             out = out + weight * c[tuple(index)]
     return out
 
@@ -134,10 +178,14 @@ def _window(h, w):
 
 
 def _prepare(img, box, win, factor):
-    """The box of `img`, block-averaged by `factor`, mean removed, Hann-windowed (float32)."""
-    y0, y1, x0, x1 = box
+    """The box of `img`, block-averaged by `factor`, mean removed, Hann-windowed (float32).
+    Non-finite pixels are filled in from their finite neighbours (`_fill`): one NaN would
+    make the whole spectrum NaN."""
+    y0, _, x0, _ = box
     hh, ww = win.shape
     crop = np.asarray(img[y0:y0 + hh * factor, x0:x0 + ww * factor], np.float32)
+    if not np.isfinite(crop.sum()):  # the sum: all finite, tested cheaply
+        crop = _fill(crop, ~np.isfinite(crop)).astype(np.float32)
     if factor > 1:  # strided sums: numpy's mean over a reshaped block axis was 4x slower
         crop = sum(crop[i::factor, j::factor] for i in range(factor) for j in range(factor))
     crop = crop - crop[win > 0].mean()
@@ -200,6 +248,9 @@ def _phase_shift(ref_spec, img_spec, upsample, normalization):
     return peak
 
 
+NORMALIZATIONS = ("phase", None)  # as scikit-image's phase_cross_correlation
+
+
 def estimate_shifts(
     frames: Float[ArrayLike, "K H W *C"],
     *,
@@ -216,13 +267,24 @@ def estimate_shifts(
       (e.g. renderings under each frame's own light).
     - `mask`: `(H, W)` region to correlate (the face); its bounding box plus a margin is
       windowed with a Hann window. Default: the whole frame.
-    - `upsample`: sub-pixel resolution is 1/`upsample` pixel.
+    - `upsample`: sub-pixel resolution is 1/`upsample` pixel (a positive integer).
+    - `normalization`: `"phase"` whitens the cross-power spectrum (phase correlation); `None`
+      correlates the plain spectra.
+
+    Non-finite pixels (in `frames` or `reference`) are left out of the correlation: each is
+    replaced by the mean of its finite 3 x 3 neighbours (the frame's finite mean where it has
+    none), which adds no edge for the whitened spectrum to lock onto.
 
     **Returns:** `(K, 2)` float64 (dy, dx): frame k's content sits at reference position plus
     (dy, dx).
     """
     from threadpoolctl import threadpool_limits
 
+    if isinstance(upsample, bool) or not isinstance(upsample, (int, np.integer)) \
+            or upsample < 1:
+        raise ValueError(f"upsample must be a positive integer, got {upsample!r}")
+    if normalization not in NORMALIZATIONS:
+        raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
     grey = np.asarray(frames, np.float32)
     if grey.ndim == 4:
         grey = grey.mean(axis=-1)
@@ -282,12 +344,14 @@ def register_frames(
     """Measure inter-frame motion and, when every shift is within `max_shift` pixels, undo it.
 
     **Arguments:**
-    - `frames`: `(K, H, W)` or `(K, H, W, C)` floating point.
+    - `frames`: `(K, H, W)` or `(K, H, W, C)` floating point. Non-finite pixels take no part in
+      the measurement and, when the frames are moved, make the few output pixels that
+      interpolate them NaN (see `shift_frames`).
     - `mask`: `(H, W)` face region (default: whole frame).
     - `reference`: the frame that stays put.
     - `max_shift`: larger motion is reported but not corrected (`registered=False`): a subject
       who moved that far has probably also turned, which a translation cannot undo.
-    - `upsample`: sub-pixel resolution 1/`upsample`.
+    - `upsample`: sub-pixel resolution 1/`upsample` (a positive integer).
 
     **Returns:** a `Registration`.
     """

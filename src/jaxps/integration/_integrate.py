@@ -137,16 +137,31 @@ def _check_intrinsics(intrinsics):
     return tuple(float(v) for v in (k[0, 0], k[1, 1], k[0, 2], k[1, 2]))
 
 
-@jax.jit
 def gradients_from_normals(
-    normals: Float[Array, "H W 3"], mask: Bool[Array, "H W"]
+    normals: Float[ArrayLike, "H W 3"], mask: Bool[ArrayLike, "H W"] | None
 ) -> tuple[Float[Array, "H W"], Float[Array, "H W"]]:
-    """Surface gradients `(p, q)` = (dz/dx, dz/dy), y up; 0 outside `mask` and for NaN normals.
+    """Surface gradients `(p, q)` = (dz/dx, dz/dy), y up, of `(H, W, 3)` normals: `(H, W)`
+    each, 0 outside `mask` (`(H, W)` bool, or None for every pixel) and for NaN normals.
 
     $n_z$ is floored at 0.05. Gradients with respect to `normals` are finite (0 for the pixels
     left out): NaN normals are replaced before dividing, not after.
     """
-    ok = mask & jnp.all(jnp.isfinite(normals), axis=-1)
+    if not hasattr(normals, "dtype"):
+        normals = np.asarray(normals)
+    if normals.ndim != 3 or normals.shape[-1] != 3:
+        raise ValueError(f"normals must be (H, W, 3), got shape {normals.shape}")
+    if not jnp.issubdtype(normals.dtype, jnp.floating):
+        raise ValueError(f"normals must be floating point, got {normals.dtype}")
+    if mask is not None and np.shape(mask) != normals.shape[:2]:
+        raise ValueError(f"mask must have shape (H, W) = {normals.shape[:2]}, got "
+                         f"{np.shape(mask)}")
+    return _gradients_from_normals(normals, None if mask is None else jnp.asarray(mask, bool))
+
+
+@jax.jit
+def _gradients_from_normals(normals, mask):
+    ok = jnp.all(jnp.isfinite(normals), axis=-1)
+    ok = ok if mask is None else mask & ok
     n = jnp.where(ok[..., None], normals, 0)  # no NaN in the branch `where` leaves out
     nx, ny, nz = n[..., 0], n[..., 1], jnp.maximum(n[..., 2], _MIN_NZ)
     p = jnp.where(ok, -nx / nz, 0)
@@ -694,7 +709,7 @@ def integrate(
     steps, solver_steps, converged = 0, 0, True
     if method == "fc":
         if cam is None:  # the seeds' behaviour, on normalised normals
-            p, q = gradients_from_normals(n, mask)
+            p, q = _gradients_from_normals(n, mask)
         else:
             p, q = gc, -gr
         eta = _frankot_chellappa(p, -q, mask, count)
@@ -742,6 +757,8 @@ def normals_from_height(
     With `mask`, differences never reach outside it: a pixel whose neighbour on one side is
     outside uses the one-sided difference to the other side, and a pixel with neither
     neighbour along an axis gets slope 0 there; normals outside the mask are `(0, 0, 1)`.
+    Non-finite heights (NaN for "no data") count as outside the mask, with or without one, so
+    they do not spread to their neighbours.
 
     **Arguments:**
     - `z`: `(H, W)` height, toward the viewer, in the unit of `pixel_size`.
@@ -755,6 +772,9 @@ def normals_from_height(
         raise ValueError(f"z must be a 2-D height map of at least 2x2, got shape {z.shape}")
     if not jnp.issubdtype(z.dtype, jnp.floating):
         z = z.astype(jnp.float32)
+    if not isinstance(pixel_size, jax.core.Tracer) and not (
+            np.ndim(pixel_size) == 0 and np.isfinite(pixel_size) and pixel_size > 0):
+        raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     if mask is None:
         return _normals_from_height(z, jnp.asarray(pixel_size, z.dtype))
     if np.shape(mask) != z.shape:
@@ -765,8 +785,14 @@ def normals_from_height(
 
 @jax.jit
 def _normals_from_height(z, pixel_size):
-    dzdr, dzdc = jnp.gradient(z)
-    return _unit_normals_from_slopes(dzdc / pixel_size, -dzdr / pixel_size, None)
+    def everywhere():
+        dzdr, dzdc = jnp.gradient(z)
+        return _unit_normals_from_slopes(dzdc / pixel_size, -dzdr / pixel_size, None)
+
+    # the rare height map with holes: the masked differences, around them only
+    finite = jnp.isfinite(z)
+    return jax.lax.cond(jnp.all(finite), everywhere,
+                        lambda: _normals_from_height_masked.__wrapped__(z, finite, pixel_size))
 
 
 def _unit_normals_from_slopes(p, q, mask):
@@ -804,6 +830,7 @@ def _masked_derivative(z, mask, axis):
 
 @jax.jit
 def _normals_from_height_masked(z, mask, pixel_size):
+    mask = mask & jnp.isfinite(z)
     p = _masked_derivative(z, mask, 1) / pixel_size
     q = -_masked_derivative(z, mask, 0) / pixel_size
     return _unit_normals_from_slopes(p, q, mask)

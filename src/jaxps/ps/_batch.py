@@ -48,6 +48,7 @@ from ._l2 import PSResult, branch_of, host_constants, l2_batch_flags, l2_batch_s
 from ._photometric_stereo import (
     _BANDED_SOLVERS,
     PS_METHODS,
+    _check_scale,
     _sample_thresholds,
     photometric_stereo,
 )
@@ -361,6 +362,7 @@ def photometric_stereo_batch(
     images = _stack_captures(images)
     if not np.issubdtype(images.dtype, np.floating):
         raise ValueError(f"images must be floating point in [0, 1], got {images.dtype}")
+    _check_scale(images, options.get("saturation", 1.0), pixel_axis=2)
     n, k, h, w = images.shape[:4]
     lights = np.asarray(lights, np.float32)
     shared_lights = lights.shape == (k, 3)

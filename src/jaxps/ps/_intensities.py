@@ -17,6 +17,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..core._host import to_device
+from ..lights._directions import validate_lights
 from ._photometric_stereo import photometric_stereo
 
 __all__ = ["INTENSITY_METHODS", "intensity_estimate"]
@@ -45,9 +46,14 @@ def intensity_estimate(
     **Arguments:**
     - `images`: `(K, H, W)` or `(K, H, W, C)` floating point in [0, 1].
     - `lights`: `(K, 3)` light directions.
-    - `mask`: `(H, W)` bool region to use (default: all pixels).
+    - `mask`: `(H, W)` bool region to use (default: all pixels). `"mean"` and `"frontal"`
+      average the pixels in it that are finite in every frame.
 
     **Returns:** `(K,)` intensities in the dtype of `images`.
+
+    **Raises:** `ValueError` for an unknown method, a wrong shape or dtype, an empty mask, a
+    bad light set (`validate_lights`), a light with $l_z \\le 0$ for `"frontal"`, or a frame
+    whose mean over the mask is not positive.
     """
     if method not in INTENSITY_METHODS:
         raise ValueError(f"method must be one of {INTENSITY_METHODS}, got {method!r}")
@@ -61,6 +67,8 @@ def intensity_estimate(
     k = shape[0]
     if method == "none":
         return to_device(np.ones(k, dtype))
+    if mask is not None and np.shape(mask) == shape[1:3] and not np.any(mask):
+        raise ValueError("mask is empty")  # (a mask of another shape: the checks below)
     if method == "semi_calibrated":
         res = photometric_stereo(images, lights, mask=mask, method="semi_calibrated",
                                  **options)
@@ -68,7 +76,15 @@ def intensity_estimate(
     lights = np.asarray(lights, np.float64)
     if lights.shape != (k, 3):
         raise ValueError(f"lights must be ({k}, 3), got {lights.shape}")
+    validate_lights(lights)  # finite, non-zero, spanning 3-D
     lights = lights / np.linalg.norm(lights, axis=1, keepdims=True)
+    if method == "frontal" and np.any(lights[:, 2] <= 0):
+        bad = np.flatnonzero(lights[:, 2] <= 0)
+        raise ValueError(
+            f"lights: the frontal estimate divides by each light's l_z, which must be > 0 "
+            f"(toward the viewer); light(s) {bad.tolist()} have l_z = "
+            f"{np.round(lights[bad, 2], 4).tolist()} (a flipped sign convention? For lights "
+            "behind the face plane take the \"mean\" estimate)")
     grey = np.asarray(images)
     if grey.ndim == 4:
         grey = grey.mean(axis=-1)
@@ -78,6 +94,12 @@ def intensity_estimate(
     if not sel.any():
         raise ValueError("mask is empty")
     means = grey[:, sel].mean(axis=1, dtype=np.float64)
+    if not np.all(np.isfinite(means)):  # NaN or Inf pixels: the pixels finite in every frame
+        values = grey[:, sel]
+        values = values[:, np.isfinite(values).all(axis=0)]
+        if values.shape[1] == 0:
+            raise ValueError("images: no pixel in the mask is finite in every frame")
+        means = values.mean(axis=1, dtype=np.float64)
     if np.any(~np.isfinite(means)) or np.any(means <= 0):
         raise ValueError(f"images: frame means over the mask must be positive, got {means}")
     if method == "frontal":

@@ -21,7 +21,7 @@ from ..core._status import Status
 from ..integration import integrate
 from ..lights._near import near_light_field, surface_points
 from ._l2 import PSResult
-from ._photometric_stereo import photometric_stereo
+from ._photometric_stereo import _check_images, photometric_stereo
 
 __all__ = ["NearResult", "near_photometric_stereo"]
 
@@ -78,16 +78,19 @@ def near_photometric_stereo(
 
     **Returns:** `NearResult`.
     """
-    images = jnp.asarray(images)
-    if images.ndim not in (3, 4):
-        raise ValueError(f"images must be (K, H, W) or (K, H, W, C), got shape {images.shape}")
+    images = jnp.asarray(_check_images(images)[0])  # floating (K, H, W[, C]), else a ValueError
     k, h, w = images.shape[:3]
     positions = np.asarray(positions, np.float64)
     if positions.shape != (k, 3):
         raise ValueError(f"positions must be (K, 3) = ({k}, 3), got {positions.shape}")
     if int(max_steps) != max_steps or max_steps < 1:
         raise ValueError(f"max_steps must be a positive integer, got {max_steps}")
-    dtype = images.dtype if jnp.issubdtype(images.dtype, jnp.floating) else jnp.float32
+    if tol is not None and not (np.isfinite(tol) and tol > 0):
+        raise ValueError(f"tol must be positive and finite (or None), got {tol}")
+    if np.shape(height0) not in ((), (h, w)):
+        raise ValueError(f"height0 must be a scalar or (H, W) = {(h, w)}, got shape "
+                         f"{np.shape(height0)}")
+    dtype = images.dtype
     mask = jnp.ones((h, w), bool) if mask is None else jnp.asarray(mask, bool)
     if mask.shape != (h, w):
         raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {mask.shape}")

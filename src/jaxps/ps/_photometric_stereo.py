@@ -67,6 +67,46 @@ def _sample_thresholds(shadow_threshold: float | None = None, saturation: float 
     return dark_threshold, saturation, -np.inf if shadow_threshold is None else shadow_threshold
 
 
+def _host_values(images) -> np.ndarray | None:
+    """`images` as a numpy array read in place, or None where that would wait or copy: a
+    traced array, one still being computed or copied, or one on another device."""
+    if isinstance(images, np.ndarray):
+        return images
+    if (isinstance(images, jax.core.Tracer) or not images.is_fully_addressable
+            or not images.is_ready() or any(d.platform != "cpu" for d in images.devices())):
+        return None
+    return np.asarray(images)
+
+
+def _check_scale(images, saturation: float, pixel_axis: int = 1) -> None:
+    """Raise for images on a 0..255 or 0..65535 scale: every sample of them is at or above the
+    default `saturation` of 1, so without this every pixel would come back `SATURATED`, with
+    normal (0, 0, 1) and albedo 0, and no word. `pixel_axis`: the H axis (then W).
+
+    Reads at most 16 x 16 pixels of every frame in place on the host (microseconds); arrays
+    that are not on the host yet are not checked (`_host_values`), so no call waits for it.
+    Data in [0, 1] never trips it, even after a gain correction: it needs a quarter of the
+    samples read at or above `saturation` and one above twice it.
+    """
+    values = _host_values(images)
+    if values is None or not saturation > 0:
+        return
+    h, w = values.shape[pixel_axis:pixel_axis + 2]
+    rows, cols = (np.arange(16) * (n - 1) // 15 if n > 16 else np.arange(n) for n in (h, w))
+    probe = values[(slice(None),) * pixel_axis + (rows[:, None], cols[None, :])]
+    top = probe.max(initial=-np.inf)
+    if not (top > 2 * saturation or np.isnan(top)):  # the usual case, decided in one pass
+        return
+    probe = probe[np.isfinite(probe)]
+    if probe.size and probe.max() > 2 * saturation and np.mean(probe >= saturation) >= 0.25:
+        raise ValueError(
+            f"images must be in [0, 1]: {np.mean(probe >= saturation):.0%} of the samples "
+            f"checked are at or above saturation={saturation:g} (largest {probe.max():g}), "
+            "and every such sample would be dropped as saturated. Divide 8-bit data by 255 "
+            "and 16-bit data by 65535, or give saturation on the images' own scale (e.g. 255)"
+        )
+
+
 def _check_images(images) -> tuple[jax.Array | np.ndarray, bool]:
     # Host arrays stay on the host: the jitted solve takes them as arguments (in place when
     # 64-byte aligned, as `load_capture` returns them), where `jnp.asarray` would copy the
@@ -177,6 +217,7 @@ def photometric_stereo(
             f"sample_mask must have shape (K, H, W) = {(k, h, w)}, got {np.shape(sample_mask)}"
         )
     thresholds = _sample_thresholds(shadow_threshold, saturation, dark_threshold)
+    _check_scale(images, saturation)
 
     # Arrays in `options` are traced; everything else (step limits, loss names, solver
     # objects) is static. Unhashable options fall back to running the wrapper eagerly.

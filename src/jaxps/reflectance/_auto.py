@@ -36,6 +36,7 @@ import numpy as np
 
 from ..lights._directions import MAX_LIGHT_CONDITION
 from ..ps import photometric_stereo
+from ._features import usable_normals
 
 __all__ = ["bic", "choose_regions", "lolo_folds", "region_labels"]
 
@@ -159,7 +160,7 @@ def fit_auto(fit, relight, images, normals, albedo, lights, *, mask, candidates,
     if len(folds) >= 2:  # the information criterion of every model fitted on all K frames
         obs = np.asarray(images, np.float64)
         valid = (np.asarray(mask)[None] & np.isfinite(obs) & (obs < saturation)
-                 & (np.asarray(albedo) > 0)[None])
+                 & ((np.asarray(albedo) > 0) & usable_normals(normals))[None])
         bics = {}
         for name in ("lambertian", *candidates):
             models[name] = fit(images, normals, albedo, lights, mask=mask, method=name,

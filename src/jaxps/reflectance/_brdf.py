@@ -86,6 +86,7 @@ from ._features import (
     _angles_elementwise,
     _features,
     pixel_coordinates,
+    usable_normals,
 )
 
 __all__ = [
@@ -161,7 +162,8 @@ class BRDFModel(eqx.Module):
     - `box_lo`, `box_hi`: `(3,)` training range of $u = (θi-θr, θi+θr, Δα)$ in radians.
     - `support`: `(G_i, G_r, G_α)` 0/1 occupancy of the (θi, θr, Δα) grid by training samples
       (cells of `cell` radians; a cell is occupied with at least `min_count` samples).
-    - `rho_ref`: median training albedo (the correction's scale for `method="mlp"`).
+    - `rho_ref`: median albedo over the masked pixels whose albedo and normal are finite (and
+      the normal not zero): the correction's scale for `method="mlp"`.
     - `fit`: a `BRDFFit`.
     - `gate`: `(H, W)` weight of the model against Lambert's law per pixel (`method="auto"`'s
       per-region choice: `relight` renders $L + \\text{gate} (M - L)$), or None (the model
@@ -328,11 +330,16 @@ def _fit_stats(pred, target):
 # ----------------------------------------------------------------------------- public API
 
 
-def _check_inputs(images, normals, albedo, lights, mask):
-    images = jnp.asarray(images)
+def _check_images(images):
+    """`images` (an array) if it is a floating `(K, H, W)` stack, else `ValueError`."""
     if not jnp.issubdtype(images.dtype, jnp.floating) or images.ndim != 3:
         raise ValueError(
             f"images must be a floating (K, H, W) grey stack, got {images.dtype} {images.shape}")
+    return images
+
+
+def _check_inputs(images, normals, albedo, lights, mask):
+    images = _check_images(jnp.asarray(images))
     k, h, w = images.shape
     dtype = images.dtype
     normals = _check_normals(normals, (h, w), dtype)
@@ -448,7 +455,9 @@ def fit_brdf(
     - `key`: PRNG key or int seed (`jax.random.key(seed)`) for sampling and initialisation
       (default `jax.random.key(0)`).
     - `n_samples`: random pixel-light samples to train on (paper: ~100,000). Samples that are
-      non-finite or at/above `saturation` are never drawn.
+      non-finite or at/above `saturation`, and the samples of pixels whose albedo is not > 0
+      (NaN included) or whose normal is non-finite or of zero length, are never drawn (for the
+      parametric methods: never fitted; such a pixel keeps its given normal).
     - `hidden`: hidden-layer widths of the MLP (paper: two layers, 5-10-10-1 in total).
     - `bound`: the correction's bound $B$ (in units of albedo).
     - `support_deg`, `min_count`: cell size (degrees) of the (θi, θr, Δα) support grid and the
@@ -493,7 +502,8 @@ def fit_brdf(
     **Returns:** a `BRDFModel`; `model.fit` is a `BRDFFit` (steps, converged, mse, rmse, R).
 
     **Raises:** `ValueError` for mismatched shapes, a light at or below the horizon, an empty
-    mask, an unknown method or no usable sample.
+    mask, an unknown method, an option out of range (`n_samples`, `support_deg`, `min_count`,
+    `bound`, `hidden`, `max_steps`, ...) or no usable sample.
     """
     t0 = time.perf_counter()
     if method not in BRDF_METHODS:
@@ -507,6 +517,16 @@ def fit_brdf(
     if int(n_samples) < images.shape[0]:  # n_samples // K pixels are drawn
         raise ValueError(f"n_samples must be at least K = {images.shape[0]} (one pixel per "
                          f"light), got {n_samples!r}")
+    if not (np.isfinite(support_deg) and support_deg > 0):
+        raise ValueError(f"support_deg must be a positive number of degrees, got {support_deg!r}")
+    if int(min_count) < 0:
+        raise ValueError(f"min_count must be >= 0 samples, got {min_count!r}")
+    if not (np.isfinite(bound) and bound > 0):
+        raise ValueError(f"bound must be positive (in units of albedo), got {bound!r}")
+    if any(int(width) < 1 for width in hidden):
+        raise ValueError(f"hidden must be layer widths >= 1, got {hidden!r}")
+    if int(max_steps) < 1:
+        raise ValueError(f"max_steps must be >= 1, got {max_steps!r}")
     if method == "auto":
         if candidates is None:
             candidates = AUTO_CANDIDATES
@@ -538,10 +558,15 @@ def fit_brdf(
     # lowered a small program of its own in every new process (a command-line run paid ~30).
     feats = np.asarray(_features(normals, lights))  # (K, H, W, 5)
     images_np, albedo_np = np.asarray(images), np.asarray(albedo)
-    usable = mask[None] & np.isfinite(images_np) & (images_np < saturation) & (albedo_np > 0)
+    known = mask & np.isfinite(albedo_np) & usable_normals(normals)  # rho_ref's pixels
+    usable = (known & (albedo_np > 0))[None] & np.isfinite(images_np) & (images_np < saturation)
     idx = np.flatnonzero(usable.reshape(-1))
     if idx.size == 0:
-        raise ValueError("no usable sample: every masked sample is non-finite or saturated")
+        raise ValueError(
+            "no usable sample: the albedo is not > 0 at any masked pixel"
+            if not np.any(mask & (albedo_np > 0)) else
+            "no usable sample: every masked sample is non-finite or saturated, or its pixel's "
+            "albedo is not > 0 or its normal is non-finite or zero")
     key_sample, key_init = jax.random.split(key)
     if idx.size > n_samples:
         pick = np.asarray(jax.random.choice(key_sample, idx.size, (n_samples,), replace=False))
@@ -552,7 +577,7 @@ def fit_brdf(
     f, frame, rho, target, box_lo, box_hi, rho_ref, support = jax.device_put((
         f_host, (idx // (h * w)).astype(np.int32),
         np.broadcast_to(albedo_np, (k, h, w)).reshape(-1)[idx], images_np.reshape(-1)[idx],
-        u.min(0), u.max(0), np.median(albedo_np[mask]).astype(dtype),
+        u.min(0), u.max(0), np.median(albedo_np[known]).astype(dtype),
         _support_grid(f_host[:, :3], cell, min_count).astype(dtype)))
 
     common = dict(box_lo=box_lo, box_hi=box_hi, support=support, rho_ref=rho_ref,

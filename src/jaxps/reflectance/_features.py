@@ -36,7 +36,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ..core._elementwise import atan2_nonneg as _atan2_nonneg
 
-__all__ = ["FEATURE_NAMES", "brdf_features", "pixel_coordinates"]
+__all__ = ["FEATURE_NAMES", "brdf_features", "pixel_coordinates", "usable_normals"]
 
 FEATURE_NAMES = ("theta_i", "theta_r", "delta_alpha", "x", "y")
 
@@ -97,6 +97,16 @@ def _sample_angles(n, light, view):
     light_t = light - jnp.dot(n, light) * n
     view_t = view - jnp.dot(n, view) * n
     return jnp.stack([theta_i, theta_r, _angle(light_t, view_t)])
+
+
+def usable_normals(normals) -> np.ndarray:
+    """`(H, W)` bool on the host: normals that are finite and not of (near) zero length
+    (squared length above 1e-12). The others have no angles: their samples are not fitted or
+    scored."""
+    n = np.asarray(normals)
+    with np.errstate(invalid="ignore", over="ignore"):
+        sq = np.sum(n * n, axis=-1)
+    return np.isfinite(sq) & (sq > 1e-12)
 
 
 def pixel_coordinates(h: int, w: int, dtype=jnp.float32) -> Float[Array, "H W 2"]:

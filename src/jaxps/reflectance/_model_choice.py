@@ -82,6 +82,9 @@ def compare_models(
       fraction (default 1%) with $\\sigma > 0$; otherwise the simpler Lambertian model is kept.
 
     **Returns:** a `ModelChoice`.
+
+    **Raises:** `ValueError` for mismatched shapes, too few training or held-out lights, an
+    empty mask, or no pixel where both photometric-stereo fits succeed.
     """
     images = jnp.asarray(images)
     if images.ndim != 3:
@@ -95,6 +98,10 @@ def compare_models(
                          f"{int(train.sum())} of {k}")
     lights = np.asarray(lights, np.float32)
     mask = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != (h, w):
+        raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {mask.shape}")
+    if not mask.any():
+        raise ValueError("mask is empty: no pixel to fit and score")
     tr, te = np.flatnonzero(train), np.flatnonzero(~train)
     img_tr, img_te = images[tr], images[te]
 
@@ -102,8 +109,11 @@ def compare_models(
     on = photometric_stereo(img_tr, lights[tr], mask=mask, method="oren_nayar", sigma="global",
                             form=form, max_steps=max_steps)
     good = mask & (np.asarray(lam.status) == Status.OK) & (np.asarray(on.status) == Status.OK)
-    sigma = float(np.max(np.asarray(on.info["sigma"])[good])) if good.any() else 0.0
-    sigma_status = int(np.max(np.asarray(on.info["sigma_status"])[good])) if good.any() else 0
+    if not good.any():
+        raise ValueError("no usable pixel: Lambertian or Oren-Nayar photometric stereo failed "
+                         "at every masked pixel")
+    sigma = float(np.max(np.asarray(on.info["sigma"])[good]))
+    sigma_status = int(np.max(np.asarray(on.info["sigma_status"])[good]))
 
     pred = {
         "lambertian": render_lambertian(lam.normals, lam.albedo, lights[te]),

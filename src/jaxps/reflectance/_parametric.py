@@ -194,7 +194,8 @@ def _predict(p, data, diffuse, specular, n_regions, fit_gains):
 def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples, solver,
          max_steps, frame_gains, region, refine_normals=False, rounds=2):
     """Fit `method` (a key of `PARAMETRIC_METHODS`). `usable`: `(K, H, W)` bool, samples that
-    may be fitted. Returns `(ParametricParams, gains (K,), steps, converged, the solver's
+    may be fitted (the others, NaN or not, are never read; a pixel with none keeps its
+    normal). Returns `(ParametricParams, gains (K,), steps, converged, the solver's
     message, prediction, target, n_params)`, prediction and target over the usable samples of
     every masked pixel; steps are summed over the rounds, converged and the message are the
     last round's. `n_params`: free parameters beyond a normal and an albedo per pixel (which
@@ -211,8 +212,10 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     yy, xx = np.mgrid[:h, :w]
     region_map = (yy // size) * cols + xx // size
     # Samples are gathered and results scattered on the host: each eager jnp op traced and
-    # lowered a small program of its own in every new process.
-    images, usable = np.asarray(images), np.asarray(usable)
+    # lowered a small program of its own in every new process. Unusable samples read as 0: a
+    # NaN under weight 0 would still make its residual, and its pixel's albedos, NaN.
+    usable = np.asarray(usable)
+    images = np.where(usable, np.asarray(images), np.zeros((), dtype))
     normals = np.asarray(normals).reshape(-1, 3)
     pix = np.flatnonzero(np.asarray(mask).reshape(-1) & usable.any(0).reshape(-1))
 

@@ -19,7 +19,8 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ._brdf import BRDFModel, _check_lights, extrapolation_mask, relight
+from ._brdf import BRDFModel, _check_images, _check_lights, extrapolation_mask, relight
+from ._features import usable_normals
 
 __all__ = ["RelightScore", "score_relighting"]
 
@@ -97,31 +98,43 @@ def score_relighting(
       the view axis (0, 0, 1) are not scored.
     - `normals`, `albedo`: `(H, W, 3)`, `(H, W)`, the ones `model` was fitted with (e.g. L2
       photometric stereo on the training frames).
-    - `mask`: `(H, W)` bool, the pixels to score (default all). Non-finite observations are
-      left out.
-    - `scale`: multiply intensities by this (255 gives gray levels for images in [0, 1]).
+    - `mask`: `(H, W)` bool, the pixels to score (default all; must not be empty).
+      Non-finite observations are left out, and so are the pixels whose normal is non-finite
+      or of zero length or whose albedo is non-finite.
+    - `scale`: multiply intensities by this, > 0 (255 gives gray levels for images in [0, 1]).
 
     **Returns:** a `RelightScore`. Lambert's law is `model` rendered with
     `method="lambertian"` (the same as `fit_brdf(..., method="lambertian")`).
 
-    **Raises:** `ValueError` for mismatched shapes, or no held-out light within 60°.
+    **Raises:** `ValueError` for mismatched shapes, integer images, `scale` not > 0, an empty
+    mask, no held-out light within 60° or no usable sample.
     """
-    obs = np.asarray(images, np.float64)
-    if obs.ndim != 3:
-        raise ValueError(f"images must be (K, H, W), got shape {obs.shape}")
+    obs = np.asarray(_check_images(np.asarray(images)), np.float64)
     k, h, w = obs.shape
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive number, got {scale!r}")
     unit = np.asarray(_check_lights(lights, np.float32), np.float64)
     if unit.shape[0] != k:
         raise ValueError(f"images have K={k} frames but lights have {unit.shape[0]} rows")
     sel = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
     if sel.shape != (h, w):
         raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {sel.shape}")
+    if not sel.any():
+        raise ValueError("mask is empty: no pixel to score")
+    if np.shape(normals) != (h, w, 3):
+        raise ValueError(f"normals must be (H, W, 3) = {(h, w, 3)}, got {np.shape(normals)}")
+    if np.shape(albedo) != (h, w):
+        raise ValueError(f"albedo must be (H, W) = {(h, w)}, got {np.shape(albedo)}")
     zenith = np.degrees(np.arccos(np.clip(unit[:, 2], -1.0, 1.0)))
     keep = zenith <= LIMITS_DEG[1] + 1e-6
     if not keep.any():
         raise ValueError("lights: no held-out light within 60 degrees of the view axis")
     obs, lit, near = obs[keep], np.asarray(lights)[keep], zenith[keep] <= LIMITS_DEG[0] + 1e-6
-    valid = sel[None] & np.isfinite(obs)
+    pixels = sel & usable_normals(normals) & np.isfinite(np.asarray(albedo))
+    valid = pixels[None] & np.isfinite(obs)
+    if not valid.any():
+        raise ValueError("no usable sample: every masked sample within 60 degrees is non-finite, "
+                         "or its pixel's normal or albedo is")
     obs = np.where(valid, obs, 0.0)
     pred = np.asarray(relight(model, normals, albedo, lit), np.float64)
     base = dataclasses.replace(model, method="lambertian", params=None, gate=None)
@@ -130,8 +143,9 @@ def score_relighting(
     figs, g_model = _figures(pred, obs, valid, near, outside, scale)
     lfigs, g_lam = _figures(lam, obs, valid, near, outside, scale)
     ratio = {key: figs[key] / lfigs[key] if lfigs[key] > 0 else float("nan") for key in figs}
-    frac = {"30": float(outside[valid & near[:, None, None]].mean()) if near.any()
-            else float("nan"), "60": float(outside[valid].mean())}
+    near_valid = outside[valid & near[:, None, None]]
+    frac = {"30": float(near_valid.mean()) if near_valid.size else float("nan"),
+            "60": float(outside[valid].mean())}
     gains = {}
     for name, g in (("model", g_model), ("lambertian", g_lam)):
         gains[name] = np.full(k, np.nan)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 __all__ = ["render_lambertian"]
@@ -17,14 +18,24 @@ def render_lambertian(
     """Render $I_k = \\rho \\max(0, l_k \\cdot n)$ (attached shadows clamp at 0, no cast shadows).
 
     **Arguments:**
-    - `normals`: `(H, W, 3)` unit normals.
+    - `normals`: `(H, W, 3)` unit normals, floating point.
     - `albedo`: `(H, W)` grey or `(H, W, C)` colour.
     - `lights`: `(K, 3)` distant lights or `(K, H, W, 3)` per-pixel lights (not normalised
-      here, so a light vector's length acts as its intensity).
+      here, so a light vector's length acts as its intensity). Distant lights must be finite
+      (checked unless traced); per-pixel lights are not checked (that would be a pass over
+      the image).
 
     **Returns:** `(K, H, W)` or `(K, H, W, C)` images in the dtype of `normals`.
+
+    **Raises:** `ValueError` for mismatched shapes, integer normals or non-finite distant
+    lights.
     """
     normals = jnp.asarray(normals)
+    if not jnp.issubdtype(normals.dtype, jnp.floating):
+        raise ValueError(f"normals must be floating point, got dtype {normals.dtype}")
+    if (np.ndim(lights) == 2 and not isinstance(lights, jax.core.Tracer)
+            and not np.all(np.isfinite(np.asarray(lights)))):
+        raise ValueError("lights contain NaN or Inf")
     albedo = jnp.asarray(albedo, normals.dtype)
     lights = jnp.asarray(lights, normals.dtype)
     if normals.ndim != 3 or normals.shape[-1] != 3:

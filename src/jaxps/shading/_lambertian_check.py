@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ._oren_nayar import _check_stack, _coefficients, _geometry, _shading
+from ._oren_nayar import _check_form, _check_stack, _coefficients, _geometry, _shading
 
 __all__ = ["LambertianCheck", "lambertian_check"]
 
@@ -75,11 +75,18 @@ def lambertian_check(
     - `bin_deg`: bin width in degrees (bins cover [0, 90); samples at or beyond 90 degrees,
       in attached shadow, are left out).
     - `sigma`: if given, also bin the Oren–Nayar prediction for this roughness (radians).
-    - `form`: Oren–Nayar form for that curve.
+    - `form`: Oren–Nayar form for that curve (one of `OREN_NAYAR_FORMS`).
+
+    Samples that are non-finite, or whose pixel's albedo is not > 0 (NaN included) or normal is
+    non-finite, are left out.
 
     **Returns:** a `LambertianCheck`.
+
+    **Raises:** `ValueError` for mismatched shapes, integer images, `bin_deg`, `sigma` or
+    `form` out of range, or no usable sample (an empty mask, no albedo > 0, ...).
     """
     images, normals, albedo, lights, mask = _check_stack(images, normals, albedo, lights, mask)
+    _check_form(form)
     k, h, w = images.shape
     if not (0 < bin_deg <= 30):
         raise ValueError(f"bin_deg must be in (0, 30] degrees, got {bin_deg}")
@@ -97,6 +104,9 @@ def lambertian_check(
     theta = np.degrees(np.arccos(np.clip(cos_i, -1, 1)))
     sel = (np.asarray(sample_mask, bool) & np.asarray(mask)[None] & (rho > 0)[None]
            & np.isfinite(img) & (theta < 90))
+    if not sel.any():
+        raise ValueError("no usable samples: none is masked, lit (theta < 90 degrees), finite "
+                         "and of a pixel with albedo > 0")
     ratio = img[sel] / np.broadcast_to(rho, img.shape)[sel]
     th = theta[sel]
     nb = int(np.ceil(90 / bin_deg))

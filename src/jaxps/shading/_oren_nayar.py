@@ -447,11 +447,15 @@ def _fit(images, normals, albedo, lights, mask, sample_mask, labels, s0, s_max, 
     cos_i, cos_r, p = _geometry(normals, lights)
     ok = (jnp.isfinite(images) & (images < saturation) & sample_mask & mask[None]
           & (cos_i > cos_min))
+    rho_given = albedo
+    if not refit:  # the given albedo is used: its non-finite pixels are dropped
+        ok = ok & jnp.isfinite(albedo)[None]
+        rho_given = jnp.where(jnp.isfinite(albedo), albedo, 0)
     w = ok.astype(dtype)
     i = jnp.where(ok, images, 0)
     flat = lambda x: x.reshape(k, h * wd)  # noqa: E731
     geo = _basis(flat(cos_i), cos_r.reshape(1, -1), flat(p), form)
-    data = (flat(i), flat(w), geo, albedo.reshape(-1))
+    data = (flat(i), flat(w), geo, rho_given.reshape(-1))
     args = (s0, s_max, form, refit, solver, max_steps, min_samples)
 
     reduced = form == "qualitative" and refit
@@ -563,7 +567,8 @@ def fit_roughness(
     **Arguments:**
     - `images`: `(K, H, W)` grey, linear, floating point.
     - `normals`: `(H, W, 3)` unit normals (e.g. from `photometric_stereo`).
-    - `albedo`: `(H, W)` (used as is when `refit_albedo=False`).
+    - `albedo`: `(H, W)` (used as is when `refit_albedo=False`; pixels where it is
+      non-finite are then left out of the fit).
     - `lights`: `(K, 3)` directions toward the lights (normalised here).
     - `mask`: `(H, W)` bool pixels to use (default: all).
     - `per`, `labels`: see above.
