@@ -60,3 +60,16 @@ def test_status_codes_have_messages():
         assert code.message
     assert jaxps.Status.OK == 0
     assert jaxps.status_counts(np.array([[0, 0], [1, 3]])) == {"OK": 2, "MASKED": 1, "DARK": 1}
+
+
+def test_status_counts_takes_a_result_and_rejects_what_is_not_status_codes():
+    s = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(16),
+                                     jaxps.synthetic.scanner_lights())
+    res = jaxps.photometric_stereo(s.images, s.lights, mask=s.mask)
+    counts = jaxps.status_counts(res)  # numpy's "inhomogeneous shape" error before
+    assert counts == jaxps.status_counts(res.status)
+    assert counts["MASKED"] == int(np.sum(~np.asarray(s.mask)))
+    with pytest.raises(ValueError, match="integer array of Status codes .* dtype float32"):
+        jaxps.status_counts(res.albedo)
+    with pytest.raises(ValueError, match=r"codes that are not a Status: \[42\]"):
+        jaxps.status_counts(np.array([0, 42]))

@@ -301,6 +301,15 @@ def test_works_under_jit_and_vmap_over_captures():
         (dict(method="nope"), "method must be one of"),
         (dict(saturation=float("nan")), "saturation must be finite"),
         (dict(shadow_threshold=float("nan")), "shadow_threshold must be a number or None"),
+        # an option the method does not take (a typo) names the method and what it takes,
+        # not the internal solver (Python's TypeError before)
+        (dict(los="l1", method="irls"), r"method='irls' got unknown option\(s\) 'los'; it "
+                                        r"takes loss, "),
+        (dict(max_steps=5), r"method='l2' got unknown option\(s\) 'max_steps'; it takes no"),
+        (dict(branch="switch"), r"method='l2' got unknown option"),  # the wrapper's own
+        # a float mask with values other than 0 and 1 counted every non-zero pixel as inside
+        (dict(mask=np.full((4, 4), 0.2, np.float32)), r"mask must be bool .*e\.g\. 0\.2"),
+        (dict(sample_mask=np.full((5, 4, 4), 0.7)), r"sample_mask must be bool"),
     ],
 )
 def test_bad_input(kwargs, match):
@@ -330,6 +339,13 @@ def test_images_on_a_0_to_255_scale_are_rejected_not_failed_silently():
     bright = jaxps.photometric_stereo(images * 1.3, s.lights, mask=s.mask)
     counts = jaxps.status_counts(bright.status)
     assert counts["OK"] > 0.5 * int(np.sum(s.mask)), counts
+
+
+def test_float_masks_of_0_and_1_are_taken_as_bool_masks():
+    s = face_scene(24)
+    ref = jaxps.photometric_stereo(s.images, s.lights, mask=s.mask)
+    as_float = jaxps.photometric_stereo(s.images, s.lights, mask=np.asarray(s.mask, np.float32))
+    assert_results_equal(as_float, ref)
 
 
 def test_coplanar_lights_rejected_with_condition_number():

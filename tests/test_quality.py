@@ -19,6 +19,8 @@ def test_clean_capture_passes():
     scene, frames = _frames()
     report = jaxps.check_frames(frames, mask=scene.mask)
     assert report.keep.all(), report.summary()
+    with pytest.raises(TypeError, match="thresholds must be a QualityThresholds"):
+        jaxps.check_frames(frames, thresholds=None)  # an AttributeError before
 
 
 @pytest.mark.parametrize("kind, frame, words", [

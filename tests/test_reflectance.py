@@ -313,6 +313,13 @@ def test_fit_bad_input():
         jaxps.oren_nayar(0.1, 0.1, 0.0, -0.2)
     with pytest.raises(ValueError, match="sigma"):
         jaxps.render_oren_nayar(normals, albedo, lights, -0.2)
+    # degrees by mistake, and lights that are not unit vectors, rendered silently before
+    with pytest.raises(ValueError, match=r"sigma .* \[0, pi/2\] .*20\.\.20 \(degrees\?\)"):
+        jaxps.render_oren_nayar(normals, albedo, lights, 20.0)
+    with pytest.raises(ValueError, match="lights must be finite unit directions"):
+        jaxps.render_oren_nayar(normals, albedo, 2 * np.asarray(lights), 0.2)
+    with pytest.raises(ValueError, match="lights must be finite unit directions"):
+        jaxps.render_oren_nayar(normals, albedo, np.asarray(lights) * np.nan, 0.2)
 
 
 # --------------------------------------------------------------------- Oren–Nayar-aware PS
@@ -435,6 +442,12 @@ def test_compare_models_synthetic():
         assert mc.region_choice == [expected]
     assert mc.rmse["oren_nayar"] < 0.5 * mc.rmse["lambertian"]
     assert abs(mc.sigma - 0.4) < 0.03
+    # lights of any length are directions, as in photometric_stereo (the renderer takes unit
+    # lights and now rejects others)
+    longer = jaxps.compare_models(images, 2 * np.asarray(lights), train=train,
+                                  mask=surface.mask)
+    assert longer.rmse["oren_nayar"] == pytest.approx(mc.rmse["oren_nayar"], rel=1e-4)
+    assert longer.sigma == pytest.approx(mc.sigma, abs=1e-4)
 
 
 def test_compare_models_empty_mask():

@@ -148,6 +148,10 @@ def test_flash_visibility_is_zero_where_a_change_of_intensities_keeps_the_data_l
     assert flash_visibility(cross) == pytest.approx(0.2648, abs=1e-4)  # docs/captures.md
     assert flash_visibility(four) < 1e-6
     assert flash_visibility(3.0 * cross) == pytest.approx(flash_visibility(cross))  # unit lights
+    zero = cross.copy()
+    zero[1] = 0  # numpy's LinAlgError from the SVD of NaNs before
+    with pytest.raises(ValueError, match=r"finite, non-zero directions; rows \[1\]"):
+        flash_visibility(zero)
     res = jaxps.photometric_stereo(face_scene(24).images, cross, method="semi_calibrated")
     assert float(res.info["visibility"]) == pytest.approx(flash_visibility(cross), abs=1e-6)
 

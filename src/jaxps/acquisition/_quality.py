@@ -234,6 +234,9 @@ def check_frames(
     k, h, w = frames.shape[:3]
     if h < _MIN_ROWS or w < _MIN_COLS:
         raise ValueError(f"frames must be at least {_MIN_ROWS}x{_MIN_COLS} pixels, got {h}x{w}")
+    if not isinstance(thresholds, QualityThresholds):
+        raise TypeError(f"thresholds must be a QualityThresholds (the defaults: "
+                        f"QualityThresholds()), got {type(thresholds).__name__}")
     names = [f"frame {i}" for i in range(k)] if names is None else [str(n) for n in names]
     if len(names) != k:
         raise ValueError(f"names has {len(names)} entries for K={k} frames")

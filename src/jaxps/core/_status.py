@@ -49,8 +49,24 @@ _MESSAGES = {
 
 
 def status_counts(status) -> dict[str, int]:
-    """Count pixels per status name, e.g. ``{"OK": 1200, "MASKED": 40}`` (zero counts omitted)."""
-    values, counts = np.unique(np.asarray(status), return_counts=True)
+    """Count pixels per status name, e.g. ``{"OK": 1200, "MASKED": 40}`` (zero counts omitted).
+
+    `status`: an integer array of `Status` codes of any shape, or a result with a `.status`
+    (a `PSResult`, say).
+    """
+    status = getattr(status, "status", status)
+    try:
+        codes = np.asarray(status)
+    except ValueError:  # e.g. a tuple of arrays of different shapes
+        codes = None
+    if codes is None or not (np.issubdtype(codes.dtype, np.integer) or codes.dtype == bool):
+        raise ValueError(
+            "status must be an integer array of Status codes (a result's .status), got "
+            f"{type(status).__name__}" + ("" if codes is None else f" of dtype {codes.dtype}"))
+    values, counts = np.unique(codes, return_counts=True)
+    unknown = [int(v) for v in values if int(v) not in _MESSAGES]
+    if unknown:
+        raise ValueError(f"status holds codes that are not a Status: {unknown}")
     return {Status(int(v)).name: int(c) for v, c in zip(values, counts)}
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import importlib
+import inspect
 
 import jax
 import jax.numpy as jnp
@@ -107,6 +108,45 @@ def _check_scale(images, saturation: float, pixel_axis: int = 1) -> None:
         )
 
 
+@functools.cache
+def _solver_options(method: str) -> tuple[str, ...]:
+    """The keyword-only options of `method`'s solver (L2's `shared` and `branch` are the
+    wrapper's own, not options)."""
+    module, name = _SOLVERS[method]
+    solver = getattr(importlib.import_module(f"{__package__}.{module}"), name)
+    return tuple(p.name for p in inspect.signature(solver).parameters.values()
+                 if p.kind is inspect.Parameter.KEYWORD_ONLY)
+
+
+def _check_options(method: str, options: dict) -> None:
+    # Before: an unknown option reached the solver and Python's TypeError named the
+    # internal function (`ps_irls() got an unexpected keyword argument ...`).
+    allowed = _solver_options(method)
+    unknown = sorted(set(options) - set(allowed))
+    if unknown:
+        takes = f"takes {', '.join(allowed)}" if allowed else "takes no options"
+        raise ValueError(
+            f"method={method!r} got unknown option(s) {', '.join(map(repr, unknown))}; it "
+            f"{takes} (see jaxps.photometric_stereo's docs for each method)"
+        )
+
+
+def _check_binary(name: str, m) -> None:
+    """A floating mask must hold only 0 and 1: anything else would count as inside (`!= 0`),
+    so an anti-aliased or probability mask of 0.2 would be solved as if it were 1. Bool and
+    integer masks, and traced ones, are taken as they are."""
+    if m is None or isinstance(m, jax.core.Tracer):
+        return
+    if not jnp.issubdtype(m.dtype if hasattr(m, "dtype") else np.asarray(m).dtype,
+                          jnp.floating):
+        return
+    values = np.asarray(m)
+    if not np.all((values == 0) | (values == 1)):
+        raise ValueError(f"{name} must be bool (or floating 0/1), got values other than 0 and 1 "
+                         f"(e.g. {float(values[(values != 0) & (values != 1)].flat[0]):g}); "
+                         f"threshold it, e.g. {name} > 0.5")
+
+
 def _check_images(images) -> tuple[jax.Array | np.ndarray, bool]:
     # Host arrays stay on the host: the jitted solve takes them as arguments (in place when
     # 64-byte aligned, as `load_capture` returns them), where `jnp.asarray` would copy the
@@ -183,11 +223,14 @@ def photometric_stereo(
     of their own (one per core, at least 16384 pixels each) and returns once all are done;
     the results are those of one call.
 
-    **Raises:** `ValueError` for a wrong shape, dtype, method or light set (see
+    **Raises:** `ValueError` for a wrong shape, dtype, method, option (one `method`'s solver
+    does not take), mask values (floating masks hold only 0 and 1) or light set (see
     `validate_lights`).
     """
     if method not in PS_METHODS:
         raise ValueError(f"method must be one of {PS_METHODS}, got {method!r}")
+    if options:
+        _check_options(method, options)
     images, grey = _check_images(images)
     k, h, w = images.shape[:3]
 
@@ -216,6 +259,8 @@ def photometric_stereo(
         raise ValueError(
             f"sample_mask must have shape (K, H, W) = {(k, h, w)}, got {np.shape(sample_mask)}"
         )
+    for name, m in (("mask", mask), ("sample_mask", sample_mask)):
+        _check_binary(name, m)
     thresholds = _sample_thresholds(shadow_threshold, saturation, dark_threshold)
     _check_scale(images, saturation)
 

@@ -39,7 +39,11 @@ def visibility_spectrum(lights):
     lights = lights if xp is jnp else np.asarray(lights, np.float64)
     if lights.ndim != 2 or lights.shape[1] != 3 or lights.shape[0] < 4:
         raise ValueError(f"lights must be (K, 3) with K >= 4, got {lights.shape}")
-    lights = lights / xp.linalg.norm(lights, axis=-1, keepdims=True)
+    norms = xp.linalg.norm(lights, axis=-1, keepdims=True)
+    if xp is np and not (np.isfinite(norms).all() and (norms > 0).all()):
+        bad = np.flatnonzero(~(np.isfinite(norms[:, 0]) & (norms[:, 0] > 0))).tolist()
+        raise ValueError(f"lights must be finite, non-zero directions; rows {bad} are not")
+    lights = lights / norms
     null = xp.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
     jac = (null[:, :, None] * lights[None]).transpose(0, 2, 1).reshape(-1, lights.shape[0])
     return xp.linalg.svd(jac, compute_uv=False)

@@ -185,14 +185,23 @@ def render_oren_nayar(
     albedo = jnp.asarray(albedo, dtype)
     if albedo.shape != normals.shape[:2]:
         raise ValueError(f"albedo must be (H, W) = {normals.shape[:2]}, got {albedo.shape}")
+    if np.ndim(lights) != 2 or np.shape(lights)[-1] != 3:
+        raise ValueError(f"lights must be (K, 3), got {np.shape(lights)}")
+    if not isinstance(lights, jax.core.Tracer):
+        # the model's angles take unit vectors: a longer one would act as no brightness,
+        # only as wrong angles
+        length = np.linalg.norm(np.asarray(lights, np.float64), axis=-1)
+        if not np.all(np.abs(length - 1) <= 1e-3):
+            raise ValueError(f"lights must be finite unit directions; their lengths are "
+                             f"{np.round(length, 4).tolist()} (normalise them)")
     lights = jnp.asarray(lights, dtype)
-    if lights.ndim != 2 or lights.shape[-1] != 3:
-        raise ValueError(f"lights must be (K, 3), got {lights.shape}")
     sigma = jnp.asarray(sigma, dtype)
     if sigma.shape not in ((), normals.shape[:2]):
         raise ValueError(f"sigma must be a scalar or (H, W), got shape {sigma.shape}")
-    if not isinstance(sigma, jax.core.Tracer) and not bool(jnp.all(sigma >= 0)):
-        raise ValueError("sigma (roughness, radians) must be >= 0 everywhere")
+    if not isinstance(sigma, jax.core.Tracer) and not bool(
+            jnp.all((sigma >= 0) & (sigma <= np.pi / 2))):
+        raise ValueError(f"sigma (roughness, radians) must lie in [0, pi/2] everywhere, got "
+                         f"{float(jnp.min(sigma)):g}..{float(jnp.max(sigma)):g} (degrees?)")
     return _render(normals, albedo, lights, sigma, form)
 
 
