@@ -1,6 +1,6 @@
 """Speed and accuracy of the robust PS solvers at 1280x1024, K=5, against RobustPhotometricStereo.
 
-Writes benchmarks/results/robust.json and robust.png. Run:
+Writes benchmarks/results/robust.json and robust.png (`--out NAME`: NAME.json, NAME.png). Run:
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_robust.py
 Baseline: RobustPhotometricStereo (Ikehata et al. 2012, github.com/yasumat/RobustPhotometricStereo)
 `rpsnumerics.L1_residual_min` / `sparse_bayesian_learning`, imported from the folder in $RPS_PATH
@@ -98,6 +98,8 @@ def main():
     ap.add_argument("--subset", type=int, default=1500)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--quick", action="store_true", help="320x256, 200 baseline pixels")
+    ap.add_argument("--out", default="robust",
+                    help="name of the JSON and PNG in benchmarks/results (default robust)")
     args = ap.parse_args()
     if args.quick:
         args.h, args.w, args.subset, args.repeats = 256, 320, 200, 1
@@ -184,7 +186,7 @@ def main():
          "error": doc["baseline"][b]["error_subset"]["mean_deg"],
          "error_name": "mean angular error (deg)", "baseline": True} for b in ("L1", "SBL")]
     OUT.mkdir(exist_ok=True)
-    (OUT / "robust.json").write_text(json.dumps(doc, indent=1))
+    (OUT / f"{args.out}.json").write_text(json.dumps(doc, indent=1))
 
     import matplotlib
 
@@ -205,7 +207,7 @@ def main():
     fig.suptitle(f"robust PS {args.w}x{args.h}, K=5, {doc['machine']['device']}, "
                  f"OPENBLAS_NUM_THREADS={doc['machine']['OPENBLAS_NUM_THREADS']}")
     fig.tight_layout()
-    fig.savefig(OUT / "robust.png", dpi=110)
+    fig.savefig(OUT / f"{args.out}.png", dpi=110)
 
 
 if __name__ == "__main__":

@@ -34,38 +34,56 @@ MAX_L1_LIGHTS = 8
 _DET_MIN = 1e-3
 
 
-def _pixel_l1(x, usable, inside, lights, thresholds, triples, outlier):
-    """Solve one pixel. `x`: K samples, each a list of C channel scalars; `usable`: K bools;
-    `lights`: `(K, 3)`; `triples`: `[((p, q, r), inverse (3, 3), valid), ...]` of every light
-    triple. Returns the outputs of `_l2._finish` (n_used and residual over the inliers)."""
+def _shade(lights, b, k):
+    return lights[k, 0] * b[0] + lights[k, 1] * b[1] + lights[k, 2] * b[2]
+
+
+def _pixel_search(x, usable, lights, thresholds, triples):
+    """The index into `triples` of one pixel's cheapest vertex (-1 if no usable triple spans
+    3-D). `x`: K samples, each a list of C channel scalars; `usable`: K bools; `lights`:
+    `(K, 3)`; `triples`: `[((p, q, r), inverse (3, 3), valid), ...]` of every light triple."""
+    ks = range(len(x))
+    dtype = x[0][0].dtype
+    _, g, used, _ = _samples(x, usable, thresholds)
+    best, index = jnp.full((), jnp.inf, dtype), jnp.full((), -1, jnp.int32)
+    for t, ((p, q, r), inv, valid) in enumerate(triples):
+        b = [inv[a, 0] * g[p] + inv[a, 1] * g[q] + inv[a, 2] * g[r] for a in range(3)]
+        cost = sum(jnp.where(used[k], jnp.abs(g[k] - _shade(lights, b, k)), 0) for k in ks)
+        cost = jnp.where(valid & used[p] & used[q] & used[r], cost, jnp.inf)
+        better = cost < best  # strictly: the first of equal costs wins
+        best = jnp.where(better, cost, best)
+        index = jnp.where(better, t, index)
+    return index
+
+
+def _pixel_vertex(x, usable, index, thresholds, triples):
+    """$b$ of one pixel's vertex `index` (zero for -1), from its grey samples."""
+    g = _samples(x, usable, thresholds)[1]
+    b = [jnp.zeros((), g[0].dtype)] * 3
+    for t, ((p, q, r), inv, _) in enumerate(triples):
+        b = [jnp.where(index == t, inv[a, 0] * g[p] + inv[a, 1] * g[q] + inv[a, 2] * g[r], b[a])
+             for a in range(3)]
+    return b
+
+
+def _pixel_finish(x, usable, inside, index, b, lights, thresholds, outlier):
+    """One pixel's outputs (those of `_l2._finish`) at its vertex `b`, found as `index`:
+    n_used and residual over the inliers, the colour albedo by least squares over them."""
     ks = range(len(x))
     dtype = x[0][0].dtype
     x, g, used, cases = _samples(x, usable, thresholds)
-
-    def shade(b, k):
-        return lights[k, 0] * b[0] + lights[k, 1] * b[1] + lights[k, 2] * b[2]
-
-    best, b = jnp.full((), jnp.inf, dtype), [jnp.zeros((), dtype)] * 3
-    for (p, q, r), inv, valid in triples:
-        bj = [inv[a, 0] * g[p] + inv[a, 1] * g[q] + inv[a, 2] * g[r] for a in range(3)]
-        cost = sum(jnp.where(used[k], jnp.abs(g[k] - shade(bj, k)), 0) for k in ks)
-        cost = jnp.where(valid & used[p] & used[q] & used[r], cost, jnp.inf)
-        better = cost < best
-        best = jnp.where(better, cost, best)
-        b = [jnp.where(better, bj[a], b[a]) for a in range(3)]
-
     n_used = _count(used)
     scale = sum(jnp.where(used[k], g[k], 0) for k in ks) / jnp.maximum(n_used, 1).astype(dtype)
-    res = [g[k] - shade(b, k) for k in ks]
+    res = [g[k] - _shade(lights, b, k) for k in ks]
     inlier = [used[k] & (jnp.abs(res[k]) <= outlier * scale) for k in ks]
     sq = sum(jnp.where(inlier[k], res[k] ** 2, 0) for k in ks)
 
     def colour_albedo(n):  # per channel, least squares over the inliers at the L1 normal
-        s = [jnp.where(inlier[k], shade(n, k), 0) for k in ks]
+        s = [jnp.where(inlier[k], _shade(lights, n, k), 0) for k in ks]
         ss = sum(v * v for v in s)
         return [safe_divide(sum(s[k] * x[k][c] for k in ks), ss) for c in range(len(x[0]))]
 
-    cases.append((~jnp.isfinite(best), Status.DEGENERATE))  # no usable triple spans 3-D
+    cases.append((index < 0, Status.DEGENERATE))  # no usable triple spans 3-D
     colour_albedo = None if len(x[0]) == 1 else colour_albedo
     return _finish(lambda: (b, sq, colour_albedo), _count(inlier), cases, inside)
 
@@ -110,9 +128,25 @@ def _ps_l1(images, lights, mask, sample_mask, thresholds, threshold):
         valid = jnp.abs(det) > _DET_MIN
         inv = jnp.linalg.inv(jnp.where(valid, sub, jnp.eye(3, dtype=sub.dtype)))
         triples.append((t, inv, valid))
-    kernel = functools.partial(_pixel_l1, triples=triples, outlier=threshold)
+    # The search, then the winning vertex, each in a `cond` whose two branches are the same:
+    # XLA does not fuse across a `cond`, so each is computed once and written to memory (a
+    # plane of indices, three of b). Left free, XLA-CPU computed the whole search again in
+    # each of the 7 loops over the image that read b: 0.176-0.179 against 0.044-0.050 s at
+    # 1 MP, K=5, the same results to the bit (`benchmarks/bench_robust.py`; docs/robust.md,
+    # "Searches computed once"). The predicate
+    # is a parameter XLA cannot evaluate while compiling, and unbatched under a `vmap` over
+    # captures, where a batched one would run both branches.
+    opaque = jnp.isnan(thresholds[0])
+    lifted = jax.vmap(functools.partial(_pixel_search, triples=triples),
+                      in_axes=(0, 0, None, None))
+    index = jax.lax.cond(opaque, lifted, lifted, x, usable, lights, thresholds)
+    lifted = jax.vmap(functools.partial(_pixel_vertex, triples=triples),
+                      in_axes=(0, 0, 0, None))
+    b = jax.lax.cond(opaque, lifted, lifted, x, usable, index, thresholds)
+    kernel = functools.partial(_pixel_finish, outlier=threshold)
     normal, albedo, status, n_used, residual = jax.vmap(
-        kernel, in_axes=(0, 0, 0, None, None))(x, usable, mask.reshape(-1), lights, thresholds)
+        kernel, in_axes=(0, 0, 0, 0, 0, None, None))(x, usable, mask.reshape(-1), index, b,
+                                                     lights, thresholds)
     return PSResult(jnp.stack(normal, -1).reshape(h, w, 3),
                     jnp.stack(albedo, -1).reshape(h, w, c), status.reshape(h, w),
                     n_used.reshape(h, w), residual.reshape(h, w))
