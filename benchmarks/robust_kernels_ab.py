@@ -4,8 +4,9 @@ Each version solves the same 96x80 stacks (`bench_robust.py`'s corruption: cast 
 Blinn-Phong lobe, 0.5% noise; six lights on a 40-degree cone) with one method and saves every
 output; `--compare` then reports, over the pixels both call OK, how far the normals moved,
 whether status and `n_used` agree and whether every output is equal to the bit. Stacks: grey;
-colour (three scaled channels, one NaN, 5% of the samples masked out); per-pixel lights (1% jitter) with a shadow threshold (not for
-`l1`, which takes shared lights only); for `irls` also the Huber loss.
+colour (three scaled channels, one NaN, 5% of the samples masked out); per-pixel lights (1%
+jitter) with a shadow threshold (not for `l1`, which takes shared lights only); for `irls`
+also the Huber loss.
 
     PYTHONPATH=src python benchmarks/robust_kernels_ab.py --save new_irls.npz --method irls
     PYTHONPATH=/tmp/old/src python benchmarks/robust_kernels_ab.py --save old_irls.npz --method irls
