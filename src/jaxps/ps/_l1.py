@@ -133,9 +133,9 @@ def _ps_l1(images, lights, mask, sample_mask, thresholds, threshold):
     # plane of indices, three of b). Left free, XLA-CPU computed the whole search again in
     # each of the 7 loops over the image that read b: 0.176-0.179 against 0.044-0.050 s at
     # 1 MP, K=5, the same results to the bit (`benchmarks/bench_robust.py`; docs/robust.md,
-    # "Searches computed once"). The predicate
-    # is a parameter XLA cannot evaluate while compiling, and unbatched under a `vmap` over
-    # captures, where a batched one would run both branches.
+    # "Searches computed once"). The predicate is a parameter XLA cannot evaluate while
+    # compiling, and unbatched under a `vmap` over captures, where a batched one would run
+    # both branches.
     opaque = jnp.isnan(thresholds[0])
     lifted = jax.vmap(functools.partial(_pixel_search, triples=triples),
                       in_axes=(0, 0, None, None))

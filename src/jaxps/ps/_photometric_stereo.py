@@ -194,7 +194,7 @@ def photometric_stereo(
     - `images`: `(K, H, W)` grey or `(K, H, W, C)` colour, floating point, linear, in [0, 1].
     - `lights`: `(K, 3)` directions toward the lights (normalised here), or `(K, H, W, 3)` per
       pixel for near lights.
-    - `mask`: `(H, W)` bool, pixels to solve (default: all).
+    - `mask`: `(H, W)` bool (or floating 0/1), pixels to solve (default: all).
     - `method`: one of `jaxps.PS_METHODS`.
     - `sample_mask`: `(K, H, W)` bool, samples allowed into the solve (e.g. not saturated in
       the raw frame before ambient subtraction).
@@ -223,9 +223,9 @@ def photometric_stereo(
     of their own (one per core, at least 16384 pixels each) and returns once all are done;
     the results are those of one call.
 
-    **Raises:** `ValueError` for a wrong shape, dtype, method, option (one `method`'s solver
-    does not take), mask values (floating masks hold only 0 and 1) or light set (see
-    `validate_lights`).
+    **Raises:** `ValueError` for a wrong shape, dtype or method, an option the chosen
+    `method` does not take, a floating mask with values other than 0 and 1, or a bad light
+    set (see `validate_lights`).
     """
     if method not in PS_METHODS:
         raise ValueError(f"method must be one of {PS_METHODS}, got {method!r}")
