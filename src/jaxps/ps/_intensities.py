@@ -67,8 +67,11 @@ def intensity_estimate(
     k = shape[0]
     if method == "none":
         return to_device(np.ones(k, dtype))
-    if mask is not None and np.shape(mask) == shape[1:3] and not np.any(mask):
-        raise ValueError("mask is empty")  # (a mask of another shape: the checks below)
+    if mask is not None:
+        if np.shape(mask) != shape[1:3]:
+            raise ValueError(f"mask must have shape {shape[1:3]}, got {np.shape(mask)}")
+        if not np.any(mask):
+            raise ValueError("mask is empty")
     if method == "semi_calibrated":
         res = photometric_stereo(images, lights, mask=mask, method="semi_calibrated",
                                  **options)
@@ -89,10 +92,6 @@ def intensity_estimate(
     if grey.ndim == 4:
         grey = grey.mean(axis=-1)
     sel = np.ones(grey.shape[1:], bool) if mask is None else np.asarray(mask, bool)
-    if sel.shape != grey.shape[1:]:
-        raise ValueError(f"mask must have shape {grey.shape[1:]}, got {sel.shape}")
-    if not sel.any():
-        raise ValueError("mask is empty")
     means = grey[:, sel].mean(axis=1, dtype=np.float64)
     if not np.all(np.isfinite(means)):  # NaN or Inf pixels: the pixels finite in every frame
         values = grey[:, sel]

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core._fusion import computed_once
 from ..core._safe import safe_divide
 from ..core._status import Status
 from ._l2 import PSResult, _count, _finish, _samples
@@ -128,21 +129,16 @@ def _ps_l1(images, lights, mask, sample_mask, thresholds, threshold):
         valid = jnp.abs(det) > _DET_MIN
         inv = jnp.linalg.inv(jnp.where(valid, sub, jnp.eye(3, dtype=sub.dtype)))
         triples.append((t, inv, valid))
-    # The search, then the winning vertex, each in a `cond` whose two branches are the same:
-    # XLA does not fuse across a `cond`, so each is computed once and written to memory (a
-    # plane of indices, three of b). Left free, XLA-CPU computed the whole search again in
-    # each of the 7 loops over the image that read b: 0.176-0.179 against 0.044-0.050 s at
-    # 1 MP, K=5, the same results to the bit (`benchmarks/bench_robust.py`; docs/robust.md,
-    # "Searches computed once"). The predicate is a parameter XLA cannot evaluate while
-    # compiling, and unbatched under a `vmap` over captures, where a batched one would run
-    # both branches.
-    opaque = jnp.isnan(thresholds[0])
+    # The search, then the winning vertex, each computed once: left free, XLA-CPU computed
+    # the whole search again in each of the 7 loops over the image that read b, 0.176-0.179
+    # against 0.044-0.050 s at 1 MP, K=5, the same results to the bit
+    # (`benchmarks/bench_robust.py`; docs/robust.md, "Searches computed once").
     lifted = jax.vmap(functools.partial(_pixel_search, triples=triples),
                       in_axes=(0, 0, None, None))
-    index = jax.lax.cond(opaque, lifted, lifted, x, usable, lights, thresholds)
+    index = computed_once(lifted, x, usable, lights, thresholds, key=thresholds[0])
     lifted = jax.vmap(functools.partial(_pixel_vertex, triples=triples),
                       in_axes=(0, 0, 0, None))
-    b = jax.lax.cond(opaque, lifted, lifted, x, usable, index, thresholds)
+    b = computed_once(lifted, x, usable, index, thresholds, key=thresholds[0])
     kernel = functools.partial(_pixel_finish, outlier=threshold)
     normal, albedo, status, n_used, residual = jax.vmap(
         kernel, in_axes=(0, 0, 0, 0, 0, None, None))(x, usable, mask.reshape(-1), index, b,

@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
 
+from ..core._fusion import computed_once
 from ..core._host import OLDER_EMITTERS, CpuTuned, cpu_top_level
 from ..core._linalg import REL_DET_MIN, adjugate3, normal_equations, relative_det, solve3
 from ..core._safe import safe_divide, safe_sqrt
@@ -411,8 +412,9 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
     """`_pixel_weighted` over every pixel, with `(K, 3)` or per-pixel `(K, H, W, 3)` lights
     (`batched`: `(N, K, ...)` images as in `_planes`, with `(K, 3)` or `(N, K, 3)` lights).
 
-    `packed`: solve with `_pixel_weighted_packed` inside a `cond` whose two branches are
-    the same, then `_unpack_weighted`. XLA does not simplify across a `cond`, so the complex
+    `packed`: solve with `_pixel_weighted_packed` (`computed_once`: inside a `cond` whose
+    two branches are the same), then `_unpack_weighted`. XLA does not simplify across a
+    `cond`, so the complex
     planes are written to memory as they are. Without one, and with an
     `optimization_barrier` in its place, it simplified `real(complex(x, y))` back to `x` and
     solved the system again in every output's loop. At 1 MP with 5% of the samples dropped
@@ -426,10 +428,9 @@ def _solve_weighted(images, lights, mask, sample_mask, thresholds, flat=True, al
                               batched=batched, packed=packed)
     if not packed:
         return solve(*args)
-    # any predicate XLA cannot evaluate while compiling: both branches are the same solve
-    opaque = jnp.isnan(lights.reshape(-1)[0])
     channels = 1 if images.ndim == 3 + batched else images.shape[-1]
-    return _unpack_planes(jax.lax.cond(opaque, solve, solve, *args), channels, flat, batched)
+    planes = computed_once(solve, *args, key=lights.reshape(-1)[0])
+    return _unpack_planes(planes, channels, flat, batched)
 
 
 def _weighted_planes(images, lights, mask, sample_mask, thresholds, flat, all_finite, batched,

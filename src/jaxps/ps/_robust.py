@@ -41,6 +41,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ..core._fusion import computed_once
 from ..core._linalg import REL_DET_MIN, normal_equations, solve3
 from ..core._safe import safe_divide, safe_sqrt
 from ..core._status import Status
@@ -381,17 +382,13 @@ def _ps_barsky(images, lights, mask, sample_mask, thresholds, threshold, max_dro
     x, grey, finite, unsat, used, lt = _planes(images, lights, mask, sample_mask, thresholds)
     thr = jnp.asarray(threshold, dt)
     # The search picks samples; the gradient is that of the final solve on the kept ones.
-    # It runs in a `cond` whose two branches are the same and returns one plane, the kept
-    # samples as bits: XLA does not fuse across a `cond`, so the search runs once. Left
-    # free, XLA-CPU ran it again in the loop of each of the K keep planes (docs/robust.md).
-    # The predicate is a parameter XLA cannot evaluate while compiling, and unbatched under
-    # a `vmap` over captures, where a batched one would run both branches.
+    # It is computed once, as one plane (the kept samples as bits): left free, XLA-CPU ran
+    # it again in the loop of each of the K keep planes (docs/robust.md).
     def search(grey, used, lt):
         keep = _barsky_planes(grey, used, lt, thr, max_drop)
         return sum(kj.astype(jnp.int32) << j for j, kj in enumerate(keep))
 
-    opaque = jnp.isnan(thresholds[0])
-    bits = jax.lax.cond(opaque, search, search, *jax.lax.stop_gradient((grey, used, lt)))
+    bits = computed_once(search, *jax.lax.stop_gradient((grey, used, lt)), key=thresholds[0])
     keep = [(bits >> j) & 1 == 1 for j in range(len(grey))]
     n, rho, status, n_in, residual = _finish_planes(
         x, grey, finite, unsat, keep, [k.astype(dt) for k in keep], lt, thresholds[0], thr,

@@ -17,6 +17,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, Float, Int
 
 from ..core._status import Status
+from ..lights._directions import validate_lights
 from ..ps import photometric_stereo
 from ..shading import fit_roughness, render_lambertian, render_oren_nayar
 
@@ -96,13 +97,9 @@ def compare_models(
     if train.sum() < 5 or (~train).sum() < 1:
         raise ValueError(f"train needs >= 5 lights and at least one held out, got "
                          f"{int(train.sum())} of {k}")
-    lights = np.asarray(lights, np.float64)
-    if lights.shape != (k, 3):
-        raise ValueError(f"lights must be (K, 3) = ({k}, 3), got {lights.shape}")
-    length = np.linalg.norm(lights, axis=-1, keepdims=True)
-    if not np.all(np.isfinite(length) & (length > 0)):
-        raise ValueError("lights must be finite, non-zero directions")
-    lights = (lights / length).astype(np.float32)  # the renderers take unit lights
+    if np.shape(lights) != (k, 3):
+        raise ValueError(f"lights must be (K, 3) = ({k}, 3), got {np.shape(lights)}")
+    lights = validate_lights(lights)  # unit float32, as the renderers take them
     mask = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
     if mask.shape != (h, w):
         raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {mask.shape}")
