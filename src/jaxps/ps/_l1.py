@@ -130,7 +130,7 @@ def _ps_l1(images, lights, mask, sample_mask, thresholds, threshold):
         inv = jnp.linalg.inv(jnp.where(valid, sub, jnp.eye(3, dtype=sub.dtype)))
         triples.append((t, inv, valid))
     # The search, then the winning vertex, each computed once: left free, XLA-CPU computed
-    # the whole search again in each of the 7 loops over the image that read b, 0.176-0.179
+    # the whole search again in each loop over the image that read b, 0.176-0.179
     # against 0.044-0.050 s at 1 MP, K=5, the same results to the bit
     # (`benchmarks/bench_robust.py`; docs/robust.md, "Searches computed once").
     lifted = jax.vmap(functools.partial(_pixel_search, triples=triples),
