@@ -6,7 +6,8 @@ output; `--compare` then reports, over the pixels both call OK, how far the norm
 whether status and `n_used` agree and whether every output is equal to the bit. Stacks: grey;
 colour (three scaled channels, one NaN, 5% of the samples masked out); per-pixel lights (1%
 jitter) with a shadow threshold (not for `l1`, which takes shared lights only); for `irls`
-also the Huber loss.
+also the Huber loss. `--block N` solves in blocks of N pixels (the stacks have 7680), for
+versions that solve in blocks.
 
     PYTHONPATH=src python benchmarks/robust_kernels_ab.py --save new_irls.npz --method irls
     PYTHONPATH=/tmp/old/src python benchmarks/robust_kernels_ab.py --save old_irls.npz --method irls
@@ -20,10 +21,15 @@ import argparse
 import numpy as np
 
 
-def save(path: str, method: str) -> None:
+def save(path: str, method: str, block: int | None = None) -> None:
     import jax
 
     import jaxps
+
+    if block:  # a version that solves in blocks: several of them, the last one padded
+        from jaxps.ps import _robust
+
+        _robust._BLOCK = block
     from jaxps.stability import render_corrupted, ring_lights
 
     scene = render_corrupted(jaxps.synthetic.face_like(96, 80), ring_lights(6, 40.0),
@@ -57,8 +63,10 @@ def compare(a_path: str, b_path: str) -> dict:
     status_diff = n_used_diff = 0
     for name in names:
         ok = a[f"{name}/status"] == 0
-        cos = np.sum(a[f"{name}/normals"] * b[f"{name}/normals"], -1)
-        moved.append(np.degrees(np.arccos(np.clip(cos, -1, 1)))[ok])
+        na, nb = a[f"{name}/normals"].astype(np.float64), b[f"{name}/normals"].astype(np.float64)
+        # atan2 of |a x b| and a.b: exact near 0, where arccos of a float32 dot is not
+        angle = np.arctan2(np.linalg.norm(np.cross(na, nb), axis=-1), np.sum(na * nb, -1))
+        moved.append(np.degrees(angle)[ok])
         ok_px += int(ok.sum())
         status_diff += int((a[f"{name}/status"] != b[f"{name}/status"]).sum())
         n_used_diff += int((a[f"{name}/n_used"] != b[f"{name}/n_used"]).sum())
@@ -75,9 +83,11 @@ def main():
     ap.add_argument("--save")
     ap.add_argument("--method", default="irls")
     ap.add_argument("--compare", nargs=2)
+    ap.add_argument("--block", type=int, help="pixels per block of the solve, in versions "
+                    "that solve in blocks (patches `_robust._BLOCK`)")
     args = ap.parse_args()
     if args.save:
-        save(args.save, args.method)
+        save(args.save, args.method, args.block)
     if args.compare:
         print(compare(*args.compare))
 

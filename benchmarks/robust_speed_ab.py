@@ -4,8 +4,9 @@ The 1280x1024, K=5 scene of `bench_robust.py`. Each method is called once to com
 times; the median and minimum are printed with the mean / median error against the truth.
 `--save F` also writes `irls`'s per-pixel step counts, status and normals to `F` (.npz), and
 `--compare A B` prints how two such files differ; `--size H W` and `--chunk N` change the
-scene's size and the pixels per `lax.map` chunk of the iterative solvers. Run the versions alternately, e.g. with a
-worktree of the older commit:
+scene's size and the pixels per `lax.map` chunk of the iterative solvers, and `--block N` the
+pixels per block of the whole solve. Run the versions alternately, e.g. with a worktree of
+the older commit:
 
     git worktree add /tmp/old <commit>
     for i in 1 2; do
@@ -24,18 +25,22 @@ import time
 import numpy as np
 
 
-def run(methods, save, size=(1024, 1280), chunk=None):
+def run(methods, save, size=(1024, 1280), chunk=None, block=None):
     import jax
 
     import jaxps
     from jaxps.evaluate import angular_stats
     from jaxps.stability import render_corrupted, ring_lights
 
-    print(jaxps.__file__, "chunk", chunk or "default", "size", size)
+    print(jaxps.__file__, "chunk", chunk or "default", "block", block or "default", "size", size)
     if chunk:
         from jaxps.ps import _robust
 
         _robust._CHUNK = chunk
+    if block:
+        from jaxps.ps import _robust
+
+        _robust._BLOCK = block
     surf = jaxps.synthetic.face_like(*size)
     scene = render_corrupted(surf, ring_lights(5, 45.0), specular=0.6, shininess=100.0,
                              noise=0.005, key=jax.random.key(0))
@@ -73,11 +78,13 @@ def main():
     ap.add_argument("--size", nargs=2, type=int, default=(1024, 1280), metavar=("H", "W"))
     ap.add_argument("--chunk", type=int, help="pixels per lax.map chunk of the loops "
                     "(patches `_robust._CHUNK`)")
+    ap.add_argument("--block", type=int, help="pixels per block of the whole solve, in "
+                    "versions that solve in blocks (patches `_robust._BLOCK`)")
     args = ap.parse_args()
     if args.compare:
         compare(*args.compare)
     else:
-        run(args.methods, args.save, tuple(args.size), args.chunk)
+        run(args.methods, args.save, tuple(args.size), args.chunk, args.block)
 
 
 if __name__ == "__main__":

@@ -162,6 +162,38 @@ def test_chunked_equals_unchunked(scene8, monkeypatch):
     assert np.abs(np.asarray(whole.info["steps"]) - np.asarray(parts.info["steps"])).mean() < 0.5
 
 
+@pytest.mark.parametrize("method", ["barsky", "irls"])
+def test_blocks_equal_one_block(scene8, method, monkeypatch):
+    # The solvers run in `lax.map` blocks of `_robust._BLOCK` pixels. 64 x 64 pixels in blocks
+    # of 700 (6 blocks, the last padded; irls's 128-pixel loop chunks padded in each) against
+    # one block: colour samples, per-pixel lights and dropped samples, as in the test below.
+    from jaxps.ps import _robust
+
+    k, h, w = scene8.images.shape
+    rgb = np.stack([scene8.images, 0.7 * scene8.images], axis=-1)
+    near = np.broadcast_to(np.asarray(scene8.lights)[:, None, None], (k, h, w, 3)).copy()
+    near[..., 1] += np.linspace(-0.05, 0.05, h, dtype=np.float32)[:, None]
+    drop = np.ones((k, h, w), bool)
+    drop[1, 5::4] = False
+
+    def solve(block):
+        monkeypatch.setattr(_robust, "_BLOCK", block)
+        jax.clear_caches()
+        return jaxps.photometric_stereo(rgb, near, mask=scene8.mask, sample_mask=drop,
+                                        method=method)
+
+    one, blocks = solve(h * w), solve(700)
+    jax.clear_caches()
+    for field in ("status", "n_used"):
+        np.testing.assert_array_equal(np.asarray(getattr(blocks, field)),
+                                      np.asarray(getattr(one, field)))
+    np.testing.assert_array_equal(np.asarray(blocks.info["steps"]), np.asarray(one.info["steps"]))
+    assert (np.asarray(one.status)[np.asarray(scene8.mask)] == 0).mean() > 0.9
+    assert float(jaxps.angular_error(blocks.normals, one.normals).max()) < 1e-3
+    np.testing.assert_allclose(np.asarray(blocks.albedo), np.asarray(one.albedo), atol=1e-5)
+    np.testing.assert_allclose(np.asarray(blocks.residual), np.asarray(one.residual), atol=1e-5)
+
+
 @pytest.mark.parametrize("method", ["irls", "sbl"])
 def test_row_bands_on_threads_equal_one_call(scene8, method, monkeypatch):
     # A top-level CPU call of the loop solvers runs row bands on threads; 64 rows in 3 bands

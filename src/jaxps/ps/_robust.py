@@ -57,6 +57,13 @@ __all__ = ["ps_barsky", "ps_irls", "ps_sbl"]
 # and sbl takes 25 against 35 ms.
 _CHUNK = 128
 
+# Pixels per block of a whole solve: its flags, search or loops, final weighted solve and
+# outputs run on one block (a `lax.map` step) at a time. On the whole image at once, XLA-CPU
+# wrote each of the final solve's intermediates to memory in its own pass over the image; on
+# a block they stay in cache (`benchmarks/robust_speed_ab.py --block N`, docs/robust.md,
+# "Solved in blocks").
+_BLOCK = 32768
+
 
 # ----------------------------------------------------------------------------------------------
 # Barsky & Petrou 2003: drop the darkest / brightest samples when the residual says so.
@@ -80,10 +87,11 @@ def _ranks(keys):
 
 
 def _barsky_planes(grey, used, lt, threshold, max_drop):
-    """Barsky's subset search on planes (`grey`, `used`, `lt` as from `_planes`): for each
-    candidate (`_drop_patterns`, fewest drops first) the fit without the `nd` darkest and `nb`
-    brightest used samples, its score and its sign test; the first best candidate's kept
-    samples (all used ones when no candidate is acceptable). Returns K keep flags."""
+    """Barsky's subset search on planes (`grey`, `used`, `lt` as `_blockwise`'s kernels take
+    them): for each candidate (`_drop_patterns`, fewest drops first) the fit without the `nd`
+    darkest and `nb` brightest used samples, its score and its sign test; the first best
+    candidate's kept samples (all used ones when no candidate is acceptable). Returns K keep
+    flags."""
     ks = range(len(grey))
     dtype = grey[0].dtype
     inf = jnp.asarray(jnp.inf, dtype)
@@ -181,57 +189,94 @@ def _irls_loop(g, used, lt, *, loss, delta, eps, rtol, max_steps):
 # Shared by the solvers: the image as planes, chunked loops, the final weighted solve.
 
 
-def _planes(images, lights, mask, sample_mask, thresholds):
-    """The image as flat `(H*W,)` planes, sorted as `method="l2"` sorts samples: K lists of C
-    samples (non-finite ones zeroed), K grey samples, the K finite / unsaturated / used flags
-    (used: also in `sample_mask` and `mask`, and not below the shadow threshold), and K lights
-    `[lx, ly, lz]` (shared: scalars; per pixel: unit planes)."""
-    k, h, w, c = images.shape
+def _samples(x, usable, thresholds):
+    """One pixel's samples sorted as `method="l2"` sorts them (on scalars or planes): `x` K
+    lists of C samples, `usable` K flags (in `sample_mask` and `mask`). Returns `x` with
+    non-finite samples zeroed, the K grey samples and the K finite / unsaturated / used flags
+    (used: also not below the shadow threshold)."""
     _, saturation, shadow = thresholds
-    flat = images.reshape(k, h * w, c)
-    usable = (sample_mask & mask[None]).reshape(k, h * w)
-    x, grey, finite, unsat, used = [], [], [], [], []
-    for j in range(k):
-        ch = [flat[j, :, q] for q in range(c)]
+    xs, grey, finite, unsat, used = [], [], [], [], []
+    for ch, u in zip(x, usable):
         ok = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in ch])
         ch = [jnp.where(ok, v, 0) for v in ch]
-        g = sum(ch) / c
-        lit = ok & ~functools.reduce(jnp.logical_or, [v >= saturation for v in ch]) & usable[j]
-        x.append(ch)
+        g = sum(ch) / len(ch)
+        lit = ok & ~functools.reduce(jnp.logical_or, [v >= saturation for v in ch]) & u
+        xs.append(ch)
         grey.append(g)
         finite.append(ok)
         unsat.append(lit)
         used.append(lit & (g >= shadow))
-    if lights.ndim == 2:
-        lt = [[lights[j, p] for p in range(3)] for j in range(k)]
-    else:
-        lights = lights.reshape(k, h * w, 3)
-        lights = lights / jnp.maximum(jnp.linalg.norm(lights, axis=-1, keepdims=True),
-                                      jnp.finfo(images.dtype).tiny)
-        lt = [[lights[j, :, p] for p in range(3)] for j in range(k)]
-    return x, grey, finite, unsat, used, lt
+    return xs, grey, finite, unsat, used
+
+
+def _in_chunks(fn, planes, n, size):
+    """`fn` on `(n,)` planes (a pytree of them) in `lax.map` steps of `size` pixels (the last
+    padded); its outputs, each `(size, ...)`, joined into `(n, ...)`."""
+    if n <= size:
+        return fn(planes)
+    n_chunks = -(-n // size)
+    pad = n_chunks * size - n
+    chunks = jax.tree.map(lambda a: jnp.pad(a, (0, pad)).reshape(n_chunks, size), planes)
+    outs = jax.lax.map(fn, chunks)
+    return jax.tree.map(lambda a: a.reshape(n_chunks * size, *a.shape[2:])[:n], outs)
 
 
 def _map_chunks(fn, planes, n):
-    """`fn` (a kernel on scalars, lifted by `vmap`) over `(n,)` planes (a pytree of them) in
-    `lax.map` chunks of `_CHUNK` pixels: a vmapped `while_loop` runs every lane until the
-    slowest converges, so one slow pixel holds back only its own chunk."""
-    batched = jax.vmap(fn)
-    if n <= _CHUNK:
-        return batched(planes)
-    n_chunks = -(-n // _CHUNK)
-    pad = n_chunks * _CHUNK - n
-    chunks = jax.tree.map(lambda a: jnp.pad(a, (0, pad)).reshape(n_chunks, _CHUNK), planes)
-    outs = jax.lax.map(batched, chunks)
-    return jax.tree.map(lambda a: a.reshape(n_chunks * _CHUNK)[:n], outs)
+    """`fn` (a kernel on scalars, lifted by `vmap`) over `(n,)` planes in `lax.map` chunks of
+    `_CHUNK` pixels: a vmapped `while_loop` runs every lane until the slowest converges, so one
+    slow pixel holds back only its own chunk."""
+    return _in_chunks(jax.vmap(fn), planes, n, _CHUNK)
+
+
+def _blockwise(kernel, images, lights, mask, sample_mask, thresholds, size):
+    """A robust solve of every pixel, in blocks of `size` pixels (`_in_chunks`).
+
+    `kernel(x, grey, finite, unsat, used, lt)` solves one block, given as `(size,)` planes:
+    the samples and flags of `_samples` and K unit lights `[lx, ly, lz]` (scalars for shared
+    lights). It returns the normals `(size, 3)`, albedo `(size, C)`, status, inlier count,
+    residual and per-pixel steps. Outside `mask`, and where the status is not OK, the outputs
+    are the defaults; the status is `MASKED` outside `mask`. Returns a `PSResult` whose
+    `info["steps"]` holds the steps.
+    """
+    k, h, w, c = images.shape
+    dtype = images.dtype
+    n = h * w
+    flat = images.reshape(k, n, c)
+    usable = (sample_mask & mask[None]).reshape(k, n)
+    per_pixel = lights.ndim != 2
+    if per_pixel:
+        lights = lights.reshape(k, n, 3)
+        lights = lights / jnp.maximum(jnp.linalg.norm(lights, axis=-1, keepdims=True),
+                                      jnp.finfo(dtype).tiny)
+    planes = ([[flat[j, :, q] for q in range(c)] for j in range(k)],
+              [usable[j] for j in range(k)], mask.reshape(n),
+              [[lights[j, :, p] for p in range(3)] for j in range(k)] if per_pixel else None)
+
+    def block(planes):
+        x, usable, inside, lt = planes
+        if not per_pixel:
+            lt = [[lights[j, p] for p in range(3)] for j in range(k)]
+        normals, rho, status, n_in, residual, steps = kernel(*_samples(x, usable, thresholds),
+                                                             lt)
+        keep = inside & (status == Status.OK)
+        return (jnp.where(keep[:, None], normals, jnp.array([0, 0, 1], dtype)),
+                jnp.where(keep[:, None], rho, 0),
+                jnp.where(inside, status, Status.MASKED).astype(jnp.int32),
+                n_in.astype(jnp.int32), jnp.where(keep, residual, 0),
+                jnp.where(inside, steps, 0).astype(jnp.int32))
+
+    normals, albedo, status, n_used, residual, steps = _in_chunks(block, planes, n, size)
+    return PSResult(normals.reshape(h, w, 3), albedo.reshape(h, w, c), status.reshape(h, w),
+                    n_used.reshape(h, w), residual.reshape(h, w),
+                    {"steps": steps.reshape(h, w)})
 
 
 def _finish_planes(x, grey, finite, unsat, used, w, lt, dark, outlier, converged):
-    """The final weighted solve of every pixel, on planes (the arguments of `_planes`, `w` K
-    weight planes, held fixed: the gradient flows through this solve only): unit normal from
-    the channel-mean solution, per-channel albedo, the inliers of the fit (within `outlier` x
-    the mean used intensity), their RMS and the status. Returns normals `(P, 3)`, albedo
-    `(P, C)`, status, number of inliers, residual."""
+    """The final weighted solve of every pixel, on planes (the arguments of `_blockwise`'s
+    kernels, `w` K weight planes, held fixed: the gradient flows through this solve only):
+    unit normal from the channel-mean solution, per-channel albedo, the inliers of the fit
+    (within `outlier` x the mean used intensity), their RMS and the status. Returns normals
+    `(P, 3)`, albedo `(P, C)`, status, number of inliers, residual."""
     ks = range(len(grey))
     dtype = grey[0].dtype
     w = [jnp.where(u & jnp.isfinite(v), v, 0) for u, v in zip(used, w)]
@@ -328,31 +373,6 @@ def _sbl_loop(g, used, lt, *, lambda1, lambda2, gamma_min, rtol, max_steps):
     return [1 / v for v in gamma], steps, done
 
 
-# ----------------------------------------------------------------------------------------------
-# The result of the plane kernels.
-
-
-def _outputs(n, rho, status, n_used, residual, steps, mask, dtype):
-    """The `PSResult` of flat per-pixel results (`n` `(H*W, 3)`, `rho` `(H*W, C)`): default
-    outputs where the status is not OK, `MASKED` outside `mask` `(H, W)`."""
-    h, w = mask.shape
-    c = rho.shape[-1]
-    m = mask.reshape(-1)
-    keep = m & (status == Status.OK)
-    status = jnp.where(m, status, Status.MASKED).astype(jnp.int32)
-    normals = jnp.where(keep[:, None], n, jnp.array([0, 0, 1], dtype))
-    albedo = jnp.where(keep[:, None], rho, 0)
-    residual = jnp.where(keep, residual, 0)
-    return PSResult(
-        normals.reshape(h, w, 3),
-        albedo.reshape(h, w, c),
-        status.reshape(h, w),
-        n_used.astype(jnp.int32).reshape(h, w),
-        residual.reshape(h, w),
-        {"steps": jnp.where(m, steps, 0).astype(jnp.int32).reshape(h, w)},
-    )
-
-
 def _check_positive(**kw):
     for name, v in kw.items():
         if not (np.isfinite(v) and v > 0):
@@ -379,8 +399,8 @@ def ps_barsky(images, lights, mask, sample_mask, thresholds, *, threshold: float
 @functools.partial(jax.jit, static_argnums=(6,))
 def _ps_barsky(images, lights, mask, sample_mask, thresholds, threshold, max_drop):
     dt = images.dtype
-    x, grey, finite, unsat, used, lt = _planes(images, lights, mask, sample_mask, thresholds)
     thr = jnp.asarray(threshold, dt)
+
     # The search picks samples; the gradient is that of the final solve on the kept ones.
     # It is computed once, as one plane (the kept samples as bits): left free, XLA-CPU ran
     # it again in the loop of each of the K keep planes (docs/robust.md).
@@ -388,13 +408,15 @@ def _ps_barsky(images, lights, mask, sample_mask, thresholds, threshold, max_dro
         keep = _barsky_planes(grey, used, lt, thr, max_drop)
         return sum(kj.astype(jnp.int32) << j for j, kj in enumerate(keep))
 
-    bits = computed_once(search, *jax.lax.stop_gradient((grey, used, lt)), key=thresholds[0])
-    keep = [(bits >> j) & 1 == 1 for j in range(len(grey))]
-    n, rho, status, n_in, residual = _finish_planes(
-        x, grey, finite, unsat, keep, [k.astype(dt) for k in keep], lt, thresholds[0], thr,
-        jnp.array(True))
-    dropped = _count([u & ~k for u, k in zip(used, keep)])
-    return _outputs(n, rho, status, n_in, residual, dropped, mask, dt)
+    def kernel(x, grey, finite, unsat, used, lt):
+        bits = computed_once(search, *jax.lax.stop_gradient((grey, used, lt)),
+                             key=thresholds[0])
+        keep = [(bits >> j) & 1 == 1 for j in range(len(grey))]
+        dropped = _count([u & ~k for u, k in zip(used, keep)])
+        return *_finish_planes(x, grey, finite, unsat, keep, [k.astype(dt) for k in keep], lt,
+                               thresholds[0], thr, jnp.array(True)), dropped
+
+    return _blockwise(kernel, images, lights, mask, sample_mask, thresholds, _BLOCK)
 
 
 def ps_irls(images, lights, mask, sample_mask, thresholds, *, loss: str = "l1",
@@ -437,22 +459,23 @@ def _ps_irls(images, lights, mask, sample_mask, thresholds, loss, delta, eps, rt
 def _reweighted(loop, images, lights, mask, sample_mask, thresholds, threshold):
     """An iteratively reweighted solver: `loop(grey, used, lights)` (a kernel on one pixel's
     scalars, returning the final weights, steps and convergence) over every pixel in chunks,
-    then the final weighted solve with those weights (`_finish_planes`)."""
-    dt = images.dtype
-    h, w = images.shape[1:3]
-    x, grey, finite, unsat, used, lt = _planes(images, lights, mask, sample_mask, thresholds)
-    # The loop runs on constants: reverse mode cannot differentiate a `while_loop`, and the
-    # gradient is that of the final weighted solve, its weights held fixed.
-    g_loop, lt_loop = jax.lax.stop_gradient((grey, lt))
-    if lights.ndim == 2:  # the light scalars are closed over, not mapped
-        weights, steps, done = _map_chunks(lambda p: loop(p[0], p[1], lt_loop), (g_loop, used),
-                                           h * w)
-    else:
-        weights, steps, done = _map_chunks(lambda p: loop(*p), (g_loop, used, lt_loop), h * w)
-    n, rho, status, n_in, residual = _finish_planes(
-        x, grey, finite, unsat, used, weights, lt, thresholds[0], jnp.asarray(threshold, dt),
-        done)
-    return _outputs(n, rho, status, n_in, residual, steps, mask, dt)
+    then the final weighted solve with those weights (`_finish_planes`), block by block."""
+    threshold = jnp.asarray(threshold, images.dtype)
+
+    def kernel(x, grey, finite, unsat, used, lt):
+        # The loop runs on constants: reverse mode cannot differentiate a `while_loop`, and
+        # the gradient is that of the final weighted solve, its weights held fixed.
+        g_loop, lt_loop = jax.lax.stop_gradient((grey, lt))
+        if lights.ndim == 2:  # the light scalars are closed over, not mapped
+            weights, steps, done = _map_chunks(lambda p: loop(p[0], p[1], lt_loop),
+                                               (g_loop, used), len(grey[0]))
+        else:
+            weights, steps, done = _map_chunks(lambda p: loop(*p), (g_loop, used, lt_loop),
+                                               len(grey[0]))
+        return *_finish_planes(x, grey, finite, unsat, used, weights, lt, thresholds[0],
+                               threshold, done), steps
+
+    return _blockwise(kernel, images, lights, mask, sample_mask, thresholds, _BLOCK)
 
 
 def ps_sbl(images, lights, mask, sample_mask, thresholds, *, lambda1: float = 100.0,
