@@ -36,7 +36,7 @@ def test_batch_equals_single_calls(method):
                                        single.info["intensities"], atol=1e-4)
 
 
-@pytest.mark.parametrize("method", ["irls", "sbl"])
+@pytest.mark.parametrize("method", ["barsky", "irls", "sbl"])
 def test_loop_solver_batch_on_threads_equals_single_calls(method, monkeypatch):
     """The loop solvers' CPU batch runs captures on threads (`_captures_on_threads`), here 3
     at once; it equals single calls and the jitted `lax.map` path (`vmap_size=1`), with

@@ -48,11 +48,12 @@ PS_METHODS: tuple[str, ...] = tuple(_SOLVERS)
 # Solvers that check their options on concrete values (and jit their own cores) are called
 # outside the wrapper's jit.
 _EAGER_SOLVERS = frozenset({"semi_calibrated", "oren_nayar"})
-# Solvers whose per-pixel loops are XLA `while_loop`s, which XLA-CPU runs on one thread. A
-# top-level CPU call solves them in row bands of at least `_BAND_PIXELS` pixels, one band per
-# core, each band a call of its own on a thread of its own: pixels are independent, so the
-# results are those of one call (docs/robust.md, "Row bands on threads").
-_BANDED_SOLVERS = frozenset({"irls", "sbl"})
+# Solvers that run XLA `while_loop`s over the image (their per-pixel loops, or `lax.map` over
+# blocks of pixels), which XLA-CPU runs on one thread. A top-level CPU call solves them in row
+# bands of at least `_BAND_PIXELS` pixels, one band per core, each band a call of its own on a
+# thread of its own: pixels are independent, so the results are those of one call
+# (docs/robust.md, "Row bands on threads").
+_BANDED_SOLVERS = frozenset({"barsky", "irls", "sbl"})
 _BAND_PIXELS = 1 << 14
 
 
