@@ -2,14 +2,14 @@
 1280x1024, K=5 scene, in one process. Per method, median of 7 calls after a first one:
 
 - `one program`: the whole image as one call (bands switched off);
-- `library`: `photometric_stereo` as it is (row bands on threads for `irls` and `sbl`, one
-  per core);
+- `library`: `photometric_stereo` as it is (row bands on threads for the solvers in
+  `_BANDED_SOLVERS`, one per core);
 - `halves on threads`: the image cut into two halves of rows, each a call (bands off) on a
   thread of its own, joined by nothing (what banding could give a method at best on 2 cores);
-- `2x bands`: twice as many bands as cores, each on a thread of its own (for `irls` and
-  `sbl`).
+- `2x bands`: twice as many bands as cores, each on a thread of its own (for the banded
+  solvers).
 
-Then batches of `irls` and `sbl` (8 captures of 192x168, 4 of 512x640, each frame scaled by
+Then batches of the banded solvers (8 captures of 192x168, 4 of 512x640, each frame scaled by
 its own gain): `photometric_stereo_batch` as it is (captures on threads), the jitted `lax.map`
 path it took before (`vmap_size=1`), and one `photometric_stereo` call per capture.
 
@@ -92,6 +92,7 @@ def batches(rounds):
     import jax
 
     import jaxps
+    from jaxps.ps._photometric_stereo import _BANDED_SOLVERS
     from jaxps.stability import render_corrupted, ring_lights
 
     out = {}
@@ -101,7 +102,7 @@ def batches(rounds):
         gains = np.random.default_rng(0).uniform(0.85, 1.15, (n, 5, 1, 1)).astype(np.float32)
         images = np.asarray(sc.images)[None] * gains
         lights, mask = np.asarray(sc.lights), np.asarray(sc.mask)
-        for method in ("irls", "sbl"):
+        for method in sorted(_BANDED_SOLVERS):
             def batch(m=method, im=images, lt=lights, mk=mask, **kw):
                 return jaxps.photometric_stereo_batch(im, lt, mask=mk, method=m, **kw)
 

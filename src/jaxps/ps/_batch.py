@@ -44,6 +44,7 @@ from ..core._kept import (
     result_specs,
     spare_outputs,
 )
+from . import _robust
 from ._l2 import PSResult, branch_of, host_constants, l2_batch_flags, l2_batch_solve
 from ._photometric_stereo import (
     _BANDED_SOLVERS,
@@ -278,7 +279,7 @@ def _write_block(out, start, results):
 
 def _captures_on_threads(images, lights, mask, sample_mask, shared_lights, shared_mask,
                          method, options):
-    """A batch of a loop solver (`irls`, `sbl`) on the CPU: each capture a top-level
+    """A batch of a loop solver (`barsky`, `irls`, `sbl`) on the CPU: each capture a top-level
     `photometric_stereo` call (which solves large captures in row bands on threads), on one
     thread per core, each result written into stacked host outputs as it arrives
     (`core._host.fill_on_threads`). Under `lax.map` the captures' `while_loop`s ran one after
@@ -295,7 +296,10 @@ def _captures_on_threads(images, lights, mask, sample_mask, shared_lights, share
     shapes = jax.tree.map(lambda s: jax.ShapeDtypeStruct((n, *s.shape), s.dtype),
                           jax.eval_shape(solve, *args(0)))
     parts = [lambda i=i: (i, solve(*args(i))) for i in range(n)]
-    return fill_on_threads(shapes, parts, min(cpu_cores(), n))
+    # `barsky` on a capture of one block runs no loop, and XLA-CPU spreads it over the cores
+    # itself: captures at once would contend, so they run one after another
+    one_block = method == "barsky" and images.shape[2] * images.shape[3] <= _robust._BLOCK
+    return fill_on_threads(shapes, parts, 1 if one_block else min(cpu_cores(), n))
 
 
 def photometric_stereo_batch(
