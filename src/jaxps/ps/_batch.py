@@ -3,11 +3,11 @@
 A scanner at a gate produces thousands of captures a day. `photometric_stereo_batch` solves N
 captures of the same size into `(N, ...)` outputs. On one device the L2 solve treats the stack
 as one image of N times the pixels (`_l2_one_image`). On one CPU the loop solvers (`irls`,
-`sbl`) run captures on threads (`_captures_on_threads`). Other methods map the single-capture
-solver over the capture axis in one jitted call with `jax.lax.map` (in sequence, or in
-`jax.vmap` groups of `vmap_size`), and when several devices are present the capture axis is
-split across them with `jax.sharding` (a 1-D mesh named `"captures"`). The results equal N
-separate `photometric_stereo` calls.
+`sbl`, `barsky`) run captures on threads (`_captures_on_threads`). Other methods map the
+single-capture solver over the capture axis in one jitted call with `jax.lax.map` (in
+sequence, or in `jax.vmap` groups of `vmap_size`), and when several devices are present the
+capture axis is split across them with `jax.sharding` (a 1-D mesh named `"captures"`). The
+results equal N separate `photometric_stereo` calls.
 `jaxps.reconstruct_many` (`cli/_reconstruct.py`) runs capture folders through loading, quality
 checks and the solve with one progress bar and a summary table.
 """
@@ -332,8 +332,9 @@ def photometric_stereo_batch(
       `lax.cond`) evaluates both sides. With `method="l2"` on one device, the captures are
       then solved as one image of N times the pixels: each chunk in one program, and one
       capture that drops a sample sends its chunk through the weighted solve, as one pixel
-      does a single image. With `method="irls"` or `"sbl"` on one CPU, each capture is a call
-      of its own, one per core at a time, whose results are written into stacked outputs
+      does a single image. With `method="irls"`, `"sbl"` or `"barsky"` on one CPU, each
+      capture is a call of its own, one per core at a time (`"barsky"` captures of at most
+      32768 pixels one after another), whose results are written into stacked outputs
       (XLA-CPU runs their `while_loop`s on one thread). Other methods run the captures one
       after another. See docs/speed.md for the measured ratios.
     - `out`: the `PSResult` of an earlier batch of the same shape and dtype, whose arrays are

@@ -220,9 +220,9 @@ def photometric_stereo(
     refers to it (not even a numpy view), instead of into fresh memory, which costs a page
     fault per 4 KiB; `$JAXPS_BATCH_KEEP_BYTES` bounds what is kept (default 1 GiB, `0`
     keeps none) and `jaxps.release_batch_outputs()` lets go of it.
-    For `"irls"` and `"sbl"`, such a call on a multi-core CPU solves bands of rows on threads
-    of their own (one per core, at least 16384 pixels each) and returns once all are done;
-    the results are those of one call.
+    For `"irls"`, `"sbl"` and `"barsky"`, such a call on a multi-core CPU solves bands of rows
+    on threads of their own (one per core, at least 16384 pixels each) and returns once all
+    are done; the results are those of one call.
 
     **Raises:** `ValueError` for a wrong shape, dtype or method, an option the chosen
     `method` does not take, a floating mask with values other than 0 and 1, or a bad light
