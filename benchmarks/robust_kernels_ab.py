@@ -25,12 +25,12 @@ def save(path: str, method: str, block: int | None = None) -> None:
     import jax
 
     import jaxps
+    from jaxps.stability import render_corrupted, ring_lights
 
     if block:  # a version that solves in blocks: several of them, the last one padded
         from jaxps.ps import _robust
 
         _robust._BLOCK = block
-    from jaxps.stability import render_corrupted, ring_lights
 
     scene = render_corrupted(jaxps.synthetic.face_like(96, 80), ring_lights(6, 40.0),
                              specular=0.6, shininess=100.0, noise=0.005, key=jax.random.key(1))

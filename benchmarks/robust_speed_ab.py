@@ -33,13 +33,11 @@ def run(methods, save, size=(1024, 1280), chunk=None, block=None):
     from jaxps.stability import render_corrupted, ring_lights
 
     print(jaxps.__file__, "chunk", chunk or "default", "block", block or "default", "size", size)
-    if chunk:
-        from jaxps.ps import _robust
+    from jaxps.ps import _robust
 
+    if chunk:
         _robust._CHUNK = chunk
     if block:
-        from jaxps.ps import _robust
-
         _robust._BLOCK = block
     surf = jaxps.synthetic.face_like(*size)
     scene = render_corrupted(surf, ring_lights(5, 45.0), specular=0.6, shininess=100.0,

@@ -228,12 +228,12 @@ def _map_chunks(fn, planes, n):
     return _in_chunks(jax.vmap(fn), planes, n, _CHUNK)
 
 
-def _blockwise(kernel, images, lights, mask, sample_mask, thresholds, size):
-    """A robust solve of every pixel, in blocks of `size` pixels (`_in_chunks`).
+def _blockwise(kernel, images, lights, mask, sample_mask, thresholds):
+    """A robust solve of every pixel, in blocks of `_BLOCK` pixels (`_in_chunks`).
 
-    `kernel(x, grey, finite, unsat, used, lt)` solves one block, given as `(size,)` planes:
+    `kernel(x, grey, finite, unsat, used, lt)` solves one block, given as `(P,)` planes:
     the samples and flags of `_samples` and K unit lights `[lx, ly, lz]` (scalars for shared
-    lights). It returns the normals `(size, 3)`, albedo `(size, C)`, status, inlier count,
+    lights). It returns the normals `(P, 3)`, albedo `(P, C)`, status, inlier count,
     residual and per-pixel steps. Outside `mask`, and where the status is not OK, the outputs
     are the defaults; the status is `MASKED` outside `mask`. Returns a `PSResult` whose
     `info["steps"]` holds the steps.
@@ -265,7 +265,7 @@ def _blockwise(kernel, images, lights, mask, sample_mask, thresholds, size):
                 n_in.astype(jnp.int32), jnp.where(keep, residual, 0),
                 jnp.where(inside, steps, 0).astype(jnp.int32))
 
-    normals, albedo, status, n_used, residual, steps = _in_chunks(block, planes, n, size)
+    normals, albedo, status, n_used, residual, steps = _in_chunks(block, planes, n, _BLOCK)
     return PSResult(normals.reshape(h, w, 3), albedo.reshape(h, w, c), status.reshape(h, w),
                     n_used.reshape(h, w), residual.reshape(h, w),
                     {"steps": steps.reshape(h, w)})
@@ -416,7 +416,7 @@ def _ps_barsky(images, lights, mask, sample_mask, thresholds, threshold, max_dro
         return *_finish_planes(x, grey, finite, unsat, keep, [k.astype(dt) for k in keep], lt,
                                thresholds[0], thr, jnp.array(True)), dropped
 
-    return _blockwise(kernel, images, lights, mask, sample_mask, thresholds, _BLOCK)
+    return _blockwise(kernel, images, lights, mask, sample_mask, thresholds)
 
 
 def ps_irls(images, lights, mask, sample_mask, thresholds, *, loss: str = "l1",
@@ -475,7 +475,7 @@ def _reweighted(loop, images, lights, mask, sample_mask, thresholds, threshold):
         return *_finish_planes(x, grey, finite, unsat, used, weights, lt, thresholds[0],
                                threshold, done), steps
 
-    return _blockwise(kernel, images, lights, mask, sample_mask, thresholds, _BLOCK)
+    return _blockwise(kernel, images, lights, mask, sample_mask, thresholds)
 
 
 def ps_sbl(images, lights, mask, sample_mask, thresholds, *, lambda1: float = 100.0,
