@@ -301,7 +301,8 @@ def _fc_height_of(g, mask, count, shape):
     """Frankot–Chellappa's height from `_fc_spectrum`'s half spectrum, mean 0 over `mask`, which
     holds `count` pixels (`_host_count`)."""
     z = jnp.fft.irfft2(g, s=shape).astype(g.real.dtype)
-    return z - _mean_over(z, mask, count)
+    # Over every pixel (no mask) the spectrum's zero DC term is the mean 0 already: no pass.
+    return z if mask is None else z - _mean_over(z, mask, count)
 
 
 _fc_height = jax.jit(_fc_height_of, static_argnames="shape")
@@ -359,16 +360,20 @@ def _to_height(eta, valid, cam, pixel_size, everywhere, count=None):
     return (eta * jnp.asarray(pixel_size, dt)).astype(dt)
 
 
-def _orthographic_steps(normals, mask):
+def _orthographic_steps(normals, mask, guard=True):
     """Height steps per column and per row of unit normals (0 where not valid), and the valid
     mask: `_unit_normals` + `_height_steps` without intrinsics, written on the three normal
     planes so that XLA fuses the slopes into one pass (a reduction over the length-3 axis or
-    `.at[].set` would each cost a pass over the image)."""
+    `.at[].set` would each cost a pass over the image).
+
+    `guard`: zero non-finite normals before any arithmetic, so that the branches `where`
+    leaves out carry no NaN into the gradient. The values are the same either way (a
+    non-finite component makes the squared length non-finite, so the pixel is not valid);
+    `_stacked_steps_array` computes them unguarded and differentiates the guarded form."""
     nx, ny, nz = normals[..., 0], normals[..., 1], normals[..., 2]
-    # Non-finite normals -> 0 before any arithmetic, so that the branches `where` leaves out
-    # carry no NaN into the gradient (elementwise: fused into the same pass).
-    finite = jnp.isfinite(nx) & jnp.isfinite(ny) & jnp.isfinite(nz)
-    nx, ny, nz = (jnp.where(finite, a, 0) for a in (nx, ny, nz))
+    if guard:
+        finite = jnp.isfinite(nx) & jnp.isfinite(ny) & jnp.isfinite(nz)
+        nx, ny, nz = (jnp.where(finite, a, 0) for a in (nx, ny, nz))
     sq = nx * nx + ny * ny + nz * nz
     ok = jnp.isfinite(sq) & (sq > 1e-12)
     ok = ok if mask is None else mask & ok
@@ -377,14 +382,30 @@ def _orthographic_steps(normals, mask):
     return jnp.where(ok, -nx * inv * slope, 0), jnp.where(ok, ny * inv * slope, 0), ok
 
 
+def _stacked_steps(normals, mask, guard):
+    dzdc, dzdr, ok = _orthographic_steps(normals, mask, guard)
+    return jax.lax.optimization_barrier(jnp.stack([dzdc, dzdr])), ok
+
+
+@jax.custom_jvp
 def _stacked_steps_array(normals, mask):
     """`_orthographic_steps` with the two step planes written as one `(2, H, W)` array behind
     an `optimization_barrier`, and the valid mask. Left free, XLA-CPU wrote $1/|n|$ and the
     slope to memory for the two planes' passes to share; this way one pass computes both steps
     from the normals: at 1 MP the median FC took 4-26% less time and DCT 15-34% less, with
-    the same heights (five runs of `benchmarks/bench_stacked_steps.py`)."""
-    dzdc, dzdr, ok = _orthographic_steps(normals, mask)
-    return jax.lax.optimization_barrier(jnp.stack([dzdc, dzdr])), ok
+    the same heights (five runs of `benchmarks/bench_stacked_steps.py`).
+
+    Computed without the finiteness guard, whose zeroed planes XLA-CPU wrote to memory: the
+    spectrum programs of FC and DCT compile to 10 and 7 loop fusions instead of 12 and 9
+    (`benchmarks/ab_integrate.py`). Differentiated through the guarded form, so gradients
+    stay finite on non-finite normals."""
+    return _stacked_steps(normals, mask, guard=False)
+
+
+@_stacked_steps_array.defjvp
+def _stacked_steps_array_jvp(primals, tangents):
+    normals, mask = primals
+    return jax.jvp(lambda n: _stacked_steps(n, mask, guard=True), (normals,), (tangents[0],))
 
 
 def _fc_first(normals, mask, pixel_size):
@@ -444,7 +465,8 @@ def _dct_kept(normals, mask, pixel_size):
     count = _host_count(valid)
     if count == 0:
         return None, 0
-    height = _into_kept_height(_dct_height_into, dtype, scratch[-1], valid,
+    full = count == valid.size  # then no mean to take (`_dct_height`)
+    height = _into_kept_height(_dct_height_into, dtype, scratch[-1], None if full else valid,
                                to_device(count, dtype), pixel_size, shape=shape)
     return height, count
 
@@ -512,8 +534,11 @@ def _dct_height_into(out, g, valid, count, pixel_size, shape):
 @functools.partial(jax.jit, static_argnames=("cam", "shape"))
 def _dct_height(g, valid, count, pixel_size, cam, shape):
     """`_dct_spectrum_from_normals`'s spectrum and valid mask (of `count` pixels, counted here
-    if None) to the height."""
+    if None) to the height. `valid` None: every pixel is valid, and without intrinsics the
+    solve's zero DC term is the mean 0 already (no pass over the image for it)."""
     eta = _neumann_from_spectrum(g, shape).astype(g.real.dtype)
+    if valid is None and cam is None:
+        return (eta * jnp.asarray(pixel_size, eta.dtype)).astype(eta.dtype)
     return _to_height(eta, valid, cam, pixel_size, True, count)
 
 
@@ -692,6 +717,8 @@ def integrate(
         count = None if traced else _host_count(valid)  # before the height's program takes it
         if count == 0:
             raise ValueError(_NO_VALID_NORMAL)
+        if cam is None and count == valid.size:
+            valid = None  # every pixel: no mean to take (`_dct_height`)
         return stored_call(_dct_height, spectrum, valid,
                            None if count is None else to_device(count, dtype), pixel_size,
                            cam=cam, shape=shape)
