@@ -1,4 +1,4 @@
-"""`integrate(method="fc" | "dct")` at 1280x1024, timed against scipy in interleaved rounds,
+"""`integrate(method="fc" | "dct")` at 1280x1024 (or `--size`), timed against scipy in interleaved rounds,
 for A/B runs of two versions of jaxps (run it once with each on `PYTHONPATH`).
 
 The same calls as `bench_core.py`'s FC and DCT rows (normals from L2 PS of the synthetic face,
@@ -32,12 +32,11 @@ except ImportError:  # run as a script
     from benchmarks._common import arguments, environment, interleaved, write_json
     from benchmarks.bench_core import _pq, scipy_dct_poisson, scipy_fc
 
-H, W = 1024, 1280
-
-
 def _configure(parser):
     parser.add_argument("--out", default="ab_integrate", help="results/NAME.json")
     parser.add_argument("--rounds", type=int, default=40)
+    parser.add_argument("--size", nargs=2, type=int, default=(1024, 1280),
+                        metavar=("ROWS", "COLUMNS"))
     parser.add_argument("--save", help="write the heights to this .npz")
     parser.add_argument("--compare", nargs=2, metavar=("A", "B"),
                         help="largest height difference between two --save files, then stop")
@@ -54,8 +53,9 @@ def main():
         a, b = (np.load(f) for f in args.compare)
         print({k: float(np.max(np.abs(a[k] - b[k]))) for k in a.files})
         return
+    h, w = args.size
     lights = jaxps.synthetic.scanner_lights(20.0)
-    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(H, W), lights)
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(h, w), lights)
     images = jax.device_put(scene.images)
     normals = jax.block_until_ready(jaxps.photometric_stereo(images, lights).normals)
     mask = np.asarray(scene.mask)
@@ -72,7 +72,7 @@ def main():
     first, seconds = interleaved(cases, args.rounds)
     med = {k: 1e3 * float(np.median(v)) for k, v in seconds.items()}
     res = {
-        "env": environment(), "shape": [H, W], "rounds": args.rounds,
+        "env": environment(), "shape": [h, w], "rounds": args.rounds,
         "jaxps": jaxps.__file__,
         "fusions": {
             "fc_spectrum": _fusions(integ._fc_spectrum_from_normals, normals, None,
