@@ -109,7 +109,7 @@ def _neumann_spectrum_parts(rhs):
     re = sr * inv_lam + dr / (c1 + c2)
     im = si / (c1 + s2) + di / (s1 + c2)
     er, ei = 0.5 * (c1r * c2r - c1i * c2i), -0.5 * (c1r * c2i + c1i * c2r)  # conj(e1 e2) / 2
-    return (r, f), jax.lax.complex(er * re - ei * im, er * im + ei * re)
+    return (r, f), lax.complex(er * re - ei * im, er * im + ei * re)
 
 
 def _neumann_from_spectrum(g, shape):
