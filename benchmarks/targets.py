@@ -115,7 +115,7 @@ def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: dict | None
                    [core_ratio(r, "fc") for r in core], 1.0, source=src),
             target("DCT Poisson from the normals, over scipy.fft's from the gradients",
                    [core_ratio(r, "dct") for r in core], 1.0, source=src,
-                   note="jaxps also computes the gradients and the masked mean"),
+                   note="jaxps also computes the height steps from the normals"),
             target("DCT Poisson solve from the same gradients as scipy's",
                    [core_ratio(r, "dct_solve") for r in core], 1.0, source=src),
             target("L2 PS + FC, over numpy PS + scipy FC",
