@@ -109,24 +109,32 @@ def page_faults(fn) -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before
 
 
-def interleaved(cases: dict, rounds: int):
+def interleaved(cases: dict, rounds: int, faults: dict | None = None):
     """Time the zero-argument callables `cases` (each call waited for) in `rounds` interleaved
     rounds, so that the load of a shared machine hits them alike.
 
     **Returns:** `(first_call_s, seconds)`: `{name: s}` of each first call (compile + run), and
-    `{name: [s, ...]}` of the later calls, one per round.
+    `{name: [s, ...]}` of the later calls, one per round. `faults`: a dict to fill with
+    `{name: [minor page faults, ...]}` of the same later calls.
     """
+    import resource
+
     first = {}
     for name, fn in cases.items():
         t0 = time.perf_counter()
         block(fn())
         first[name] = time.perf_counter() - t0
     seconds = {name: [] for name in cases}
+    counts = {name: [] for name in cases}
     for _ in range(rounds):
         for name, fn in cases.items():
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
             t0 = time.perf_counter()
             block(fn())
             seconds[name].append(time.perf_counter() - t0)
+            counts[name].append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+    if faults is not None:
+        faults.update(counts)
     return first, seconds
 
 

@@ -33,6 +33,7 @@ import numpy as np
 import scipy.fft
 
 import jaxps
+from jaxps.core._host import OLDER_EMITTERS, CpuTuned
 from jaxps.integration._poisson import dct_poisson
 
 try:
@@ -61,7 +62,7 @@ def numpy_ps(images, pinv):
     return n.T.reshape(h, w, 3), rho.reshape(h, w)
 
 
-def bare_l2(lights, shadow=None):
+def bare_l2(lights, shadow=None, default_emitters=False):
     """The least an XLA program does for L2 PS: a jitted kernel on a `(K, H, W)` stack that
     writes only the normals `(H, W, 3)` and the albedo `(H, W)`, with no status, `n_used`,
     residual or finiteness guard, the sums over K and the 3 axes unrolled and the lights baked
@@ -70,9 +71,12 @@ def bare_l2(lights, shadow=None):
 
     Each call writes into the buffers of the previous call's result (donated: that result is
     gone), as jaxps's large calls write into kept ones, so that at 16 MP the kernel maps no
-    fresh memory. jaxps's rows over this kernel's, in the same run, say how far the library's
-    core is from the limit of XLA on the machine (issue 18's title), apart from numpy's
-    speed on it."""
+    fresh memory. It is compiled with XLA-CPU's older loop emitters, as jaxps's L2 programs
+    are: with the default ones XLA-CPU wrote the `(H, W, 3)` normals about 2.5x more slowly,
+    and the kernel took 4.9 against 3.3 ms at K=5 and 9.2 against 5.0 ms at K=12 (nineteenth
+    session; `default_emitters=True` compiles it with those, as the row `DEFAULT_EMITTERS`).
+    jaxps's rows over this kernel's, in the same run, say how far the library's core is from
+    the limit of XLA on the machine (issue 18's title), apart from numpy's speed on it."""
     lt = np.asarray(lights, np.float64)
     lt = lt / np.linalg.norm(lt, axis=1, keepdims=True)
     k = len(lt)
@@ -85,7 +89,11 @@ def bare_l2(lights, shadow=None):
         rho = sq * inv if scale is None else sq * inv * scale
         return jnp.stack([v * inv for v in b], -1), rho
 
-    into = functools.partial(jax.jit, donate_argnums=0, keep_unused=True)
+    if default_emitters:
+        into = functools.partial(jax.jit, donate_argnums=0, keep_unused=True)
+    else:
+        into = functools.partial(CpuTuned, options=OLDER_EMITTERS, donate_argnums=0,
+                                 keep_unused=True)
 
     @into
     def clean(out, x):
@@ -155,6 +163,7 @@ def scipy_dct_poisson(gc, gr):
 
 
 BARE = "bare XLA kernel: normals + albedo only"
+DEFAULT_EMITTERS = "the same kernel with XLA-CPU's default emitters"
 
 
 def _difference(a, b, where=None):
@@ -174,10 +183,15 @@ def row(rows, work, impl, run, baseline=None, **extra):
 
 def together(cases, repeats):
     """`_common.interleaved` over `repeats` rounds: `{name: (first-call s minus the median,
-    median s)}`, so that a slow spell of the machine falls on a row and its baseline alike."""
-    first, seconds = interleaved(cases, repeats)
+    median s, median minor page faults of a call)}`, so that a slow spell of the machine
+    falls on a row and its baseline alike. The page faults say which calls wrote to memory
+    that glibc had just mapped afresh (docs/speed.md, "Why the time per pixel grows"): at
+    1 MP, whether it does differs from one process to another."""
+    faults = {}
+    first, seconds = interleaved(cases, repeats, faults)
     med = {name: statistics.median(s) for name, s in seconds.items()}
-    return {name: (first[name] - med[name], med[name]) for name in cases}
+    return {name: (first[name] - med[name], med[name], statistics.median(faults[name]))
+            for name in cases}
 
 
 def core_rows(repeats, h, w):
@@ -192,8 +206,9 @@ def core_rows(repeats, h, w):
         images_np = np.asarray(scene.images)
         pinv = np.linalg.pinv(lights).astype(np.float32)
         mask = np.asarray(scene.mask)
-        bare = bare_l2(lights)
+        bare, bare_default = bare_l2(lights), bare_l2(lights, default_emitters=True)
         cases = {"numpy": lambda: numpy_ps(images_np, pinv), "bare": lambda: bare(images),
+                 "bare_default": lambda: bare_default(images),
                  "jaxps": lambda: jaxps.photometric_stereo(images, lights)}
         if k == 12:
             # A shadow threshold at the 5th percentile of the samples in the mask.
@@ -205,18 +220,23 @@ def core_rows(repeats, h, w):
                 images, lights, mask=mask, shadow_threshold=threshold)
         t = together(cases, repeats)
         base = t["numpy"][1]
-        row(rows, "ps_l2", "numpy pinv-matmul+normalise", base, K=k)
-        row(rows, "ps_l2", BARE, t["bare"][1], base, K=k,
+        row(rows, "ps_l2", "numpy pinv-matmul+normalise", base, K=k, page_faults=t["numpy"][2])
+        row(rows, "ps_l2", BARE, t["bare"][1], base, K=k, page_faults=t["bare"][2],
             max_normal_difference=_difference(bare(images)[0], numpy_ps(images_np, pinv)[0]))
+        row(rows, "ps_l2", DEFAULT_EMITTERS, t["bare_default"][1], base, K=k,
+            page_faults=t["bare_default"][2],
+            over_bare_kernel=t["bare_default"][1] / t["bare"][1])
         row(rows, "ps_l2", "jaxps", t["jaxps"][1], base, K=k, compile_s=t["jaxps"][0],
+            page_faults=t["jaxps"][2],
             over_bare_kernel=t["jaxps"][1] / t["bare"][1])
         if k == 12:
             ours = jaxps.photometric_stereo(images, lights, mask=mask, shadow_threshold=threshold)
             ok = np.asarray(ours.status) == 0
             row(rows, "ps_l2_dropped", BARE, t["bare_dropped"][1], base, K=k,
+                page_faults=t["bare_dropped"][2],
                 max_normal_difference=_difference(bare_dropping(images)[0], ours.normals, ok))
             row(rows, "ps_l2_dropped", "jaxps", t["jaxps_dropped"][1], base, K=k,
-                compile_s=t["jaxps_dropped"][0],
+                compile_s=t["jaxps_dropped"][0], page_faults=t["jaxps_dropped"][2],
                 over_bare_kernel=t["jaxps_dropped"][1] / t["bare_dropped"][1],
                 dropped_fraction=float(np.mean(inside < threshold)),
                 pixels_dropping=float(np.mean((inside < threshold).any(0))))
@@ -237,16 +257,22 @@ def core_rows(repeats, h, w):
             "numpy_scipy": lambda: scipy_fc(*_pq(numpy_ps(images_np, pinv)[0])),
             "ps_fc": lambda: jaxps.integrate(jaxps.photometric_stereo(images, lights).normals),
         }, repeats)
-        row(rows, "fc", "scipy rfft2 float32, 2 workers", t["scipy_fc"][1])
-        row(rows, "fc", "numpy rfft2 (float64)", t["numpy_fc"][1], t["scipy_fc"][1])
-        row(rows, "fc", "jaxps", t["fc"][1], t["scipy_fc"][1], compile_s=t["fc"][0])
-        row(rows, "dct", "scipy dctn float32, 2 workers", t["scipy_dct"][1])
-        row(rows, "dct", "jaxps", t["dct"][1], t["scipy_dct"][1], compile_s=t["dct"][0])
+        row(rows, "fc", "scipy rfft2 float32, 2 workers", t["scipy_fc"][1],
+            page_faults=t["scipy_fc"][2])
+        row(rows, "fc", "numpy rfft2 (float64)", t["numpy_fc"][1], t["scipy_fc"][1],
+            page_faults=t["numpy_fc"][2])
+        row(rows, "fc", "jaxps", t["fc"][1], t["scipy_fc"][1], compile_s=t["fc"][0],
+            page_faults=t["fc"][2])
+        row(rows, "dct", "scipy dctn float32, 2 workers", t["scipy_dct"][1],
+            page_faults=t["scipy_dct"][2])
+        row(rows, "dct", "jaxps", t["dct"][1], t["scipy_dct"][1], compile_s=t["dct"][0],
+            page_faults=t["dct"][2])
         row(rows, "dct_solve", "jaxps dct_poisson", t["dct_solve"][1], t["scipy_dct"][1],
-            compile_s=t["dct_solve"][0])
-        row(rows, "ps_l2+fc", "numpy PS + scipy FC", t["numpy_scipy"][1], K=k)
+            compile_s=t["dct_solve"][0], page_faults=t["dct_solve"][2])
+        row(rows, "ps_l2+fc", "numpy PS + scipy FC", t["numpy_scipy"][1], K=k,
+            page_faults=t["numpy_scipy"][2])
         row(rows, "ps_l2+fc", "jaxps", t["ps_fc"][1], t["numpy_scipy"][1], K=k,
-            compile_s=t["ps_fc"][0])
+            compile_s=t["ps_fc"][0], page_faults=t["ps_fc"][2])
     return rows
 
 
@@ -351,7 +377,7 @@ def main():
         ratio = f"  {r['ratio']:5.2f}x baseline" if "ratio" in r else ""
         comp = f"  (compile {r['compile_s']:.2f} s)" if "compile_s" in r else ""
         print(f"{r['work']:>14} K={r.get('K', '-'):>2} {r['impl']:<41} "
-              f"{1e3 * r['run_s']:8.2f} ms{ratio}{comp}")
+              f"{1e3 * r['run_s']:8.2f} ms{ratio}{comp}  {r.get('page_faults', 0):6.0f} faults")
     for r in results["scaling"]:
         print(f"{r['rows']:>5}x{r['columns']:<5} PS {r['ps_l2_ns_per_px']:6.2f} ns/px "
               f"({r['ps_l2_page_faults_per_kpx']:.2f} page faults per 1000 px; numpy "
