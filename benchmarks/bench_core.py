@@ -72,9 +72,9 @@ def bare_l2(lights, shadow=None, default_emitters=False):
     Each call writes into the buffers of the previous call's result (donated: that result is
     gone), as jaxps's large calls write into kept ones, so that at 16 MP the kernel maps no
     fresh memory. It is compiled with XLA-CPU's older loop emitters, as jaxps's L2 programs
-    are: with the default ones XLA-CPU wrote the `(H, W, 3)` normals about 2.5x more slowly,
-    and the kernel took 4.9 against 3.3 ms at K=5 and 9.2 against 5.0 ms at K=12 (nineteenth
-    session; `default_emitters=True` compiles it with those, as the row `DEFAULT_EMITTERS`).
+    are: with the default ones the kernel took 1.38-1.44x as long at K=5 and 1.51-1.68x at
+    K=12 (`core_s19_1..3.json`; `default_emitters=True` compiles it with those, as the row
+    `DEFAULT_EMITTERS`).
     jaxps's rows over this kernel's, in the same run, say how far the library's core is from
     the limit of XLA on the machine (issue 18's title), apart from numpy's speed on it."""
     lt = np.asarray(lights, np.float64)
