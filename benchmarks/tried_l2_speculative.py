@@ -23,9 +23,11 @@ older emitters), interleaved, with numpy's pinv-matmul + normalise and the bare 
   call runs twice);
 - 30 such patches at random places.
 
-Why it was not kept: it saves at most the flag pass, and a miss costs a second solve. On the
-shared captures a miss is not rare: psm/cat drops samples at 2 pixels of one row, which an
-8-row probe sees only when that row is a probed one.
+Why it was not kept: it saves at most the flag pass, and a miss costs a second solve. With
+`--real` it also reports, for the shared captures as `load_capture` gives them (psm objects
+with their masks, Yale B's five cross lights with the ambient frame; saturated samples left
+out as the README's quick start does), how many pixels in the mask drop a sample and whether
+the probe's rows hold one of them.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/tried_l2_speculative.py
     [--rounds 30] [--name tried_l2_speculative] -> benchmarks/results/NAME.json
@@ -47,13 +49,13 @@ from jaxps.ps import _l2
 from jaxps.ps._photometric_stereo import _sample_thresholds
 
 try:
-    from benchmarks._common import environment, interleaved, write_json
+    from benchmarks._common import data_dir, environment, interleaved, write_json
     from benchmarks.bench_core import bare_l2, numpy_ps, ring_lights
 except ImportError:  # run as a script
     import pathlib
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, interleaved, write_json
+    from benchmarks._common import data_dir, environment, interleaved, write_json
     from benchmarks.bench_core import bare_l2, numpy_ps, ring_lights
 
 H, W = 1024, 1280
@@ -132,11 +134,48 @@ def ways(images, lights, mask, thresholds):
     return {"speculative": speculative, "switch": lambda: switch_program(*args)}, twice
 
 
+def real_captures():
+    """`{capture: {"pixels_dropping", "rows", "probe_sees_one"}}` for the shared captures
+    (`_common.data_dir()`), as the speculative program's probe would find them."""
+    from jaxps import acquisition
+
+    root, out = data_dir(), {}
+    caps = {obj: {"path": root / "psm" / obj, "lights": root / "psm" / "lights.txt",
+                  "mask": root / "psm" / obj / f"{obj}.mask.png"} for obj in ("cat", "owl")}
+    cross = [("+000", "+00"), ("+025", "+00"), ("-025", "+00"), ("+000", "+20"), ("+000", "-20")]
+    for s in range(1, 6):
+        d = root / "yaleb" / f"yaleB0{s}"
+        caps[d.name] = {"path": [d / f"{d.name}_P00A{a}E{e}.pgm" for a, e in cross],
+                        "yale_names": True, "ambient": d / f"{d.name}_P00_Ambient.pgm"}
+    for name, kw in caps.items():
+        cap = acquisition.load_capture(kw.pop("path"), **kw)
+        grey = np.asarray(cap.images, np.float32)
+        grey = grey.mean(-1) if grey.ndim == 4 else grey
+        thresholds = tuple(jnp.asarray(t, jnp.float32) for t in _sample_thresholds())
+        flags = np.asarray(_l2._flags(jnp.asarray(grey), jnp.asarray(cap.mask),
+                                      jnp.asarray(~cap.saturated), thresholds, flat=False))
+        rows = np.unique(np.nonzero(flags & 1)[0])
+        out[name] = {"pixels_dropping": int((flags & 1).sum()), "rows": rows.tolist(),
+                     "probe_sees_one": bool((rows % PROBE_STRIDE == 0).any())}
+        print(f"{name}: {out[name]['pixels_dropping']} pixels drop a sample, on {len(rows)} rows;"
+              f" the probe sees one: {out[name]['probe_sees_one']}", flush=True)
+    return out
+
+
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--rounds", type=int, default=30)
     parser.add_argument("--name", default="tried_l2_speculative", help="results/NAME.json")
+    parser.add_argument("--real", action="store_true",
+                        help="only the shared captures' dropped samples (no timing)")
     args = parser.parse_args(argv)
+    if args.real:
+        path = write_json(args.name, {
+            "command": "PYTHONPATH=src python benchmarks/tried_l2_speculative.py "
+                       + " ".join(sys.argv[1:] if argv is None else argv),
+            "probe_stride": PROBE_STRIDE, "captures": real_captures()})
+        print(f"wrote {path}")
+        return
     surface = jaxps.synthetic.face_like(H, W)
     rng = np.random.default_rng(0)
     rows = []
