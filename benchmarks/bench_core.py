@@ -74,9 +74,9 @@ def bare_l2(lights, shadow=None, default_emitters=False):
     fresh memory. It is compiled with XLA-CPU's older loop emitters, as jaxps's L2 programs
     are: with the default ones the kernel took 1.38-1.44x as long at K=5 and 1.51-1.68x at
     K=12 (`core_s19_1..3.json`; `default_emitters=True` compiles it with those, as the row
-    `DEFAULT_EMITTERS`).
-    jaxps's rows over this kernel's, in the same run, say how far the library's core is from
-    the limit of XLA on the machine (issue 18's title), apart from numpy's speed on it."""
+    `DEFAULT_EMITTERS`). jaxps's rows over this kernel's, in the same run, say how far the
+    library's core is from the limit of XLA on the machine (issue 18's title), apart from
+    numpy's speed on it."""
     lt = np.asarray(lights, np.float64)
     lt = lt / np.linalg.norm(lt, axis=1, keepdims=True)
     k = len(lt)
