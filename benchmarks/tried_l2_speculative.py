@@ -169,11 +169,11 @@ def main(argv=None):
     parser.add_argument("--real", action="store_true",
                         help="only the shared captures' dropped samples (no timing)")
     args = parser.parse_args(argv)
+    command = ("PYTHONPATH=src python benchmarks/tried_l2_speculative.py "
+               + " ".join(sys.argv[1:] if argv is None else argv))
     if args.real:
-        path = write_json(args.name, {
-            "command": "PYTHONPATH=src python benchmarks/tried_l2_speculative.py "
-                       + " ".join(sys.argv[1:] if argv is None else argv),
-            "probe_stride": PROBE_STRIDE, "captures": real_captures()})
+        path = write_json(args.name, {"command": command, "probe_stride": PROBE_STRIDE,
+                                      "captures": real_captures()})
         print(f"wrote {path}")
         return
     surface = jaxps.synthetic.face_like(H, W)
@@ -214,9 +214,8 @@ def main(argv=None):
                   f"{ms['numpy']:6.2f}  bare {ms['bare']:6.2f}  twice {row['ran_twice']}  "
                   f"equal {same}  normals {row['max_normal_difference']:.1e}", flush=True)
     path = write_json(args.name, {
-        "command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/tried_l2_speculative.py "
-                   + " ".join(sys.argv[1:] if argv is None else argv),
-        "environment": environment(), "rounds": args.rounds, "shape": [H, W], "rows": rows})
+        "command": "OPENBLAS_NUM_THREADS=1 " + command, "environment": environment(),
+        "rounds": args.rounds, "shape": [H, W], "rows": rows})
     print(f"wrote {path}")
 
 
