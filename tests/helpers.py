@@ -58,3 +58,34 @@ def assert_reuses_dropped_results(solve, expected, last=None):
     assert_results_equal(fourth, expected[3], "stack 3")
     assert_results_equal(fifth, expected[4], "stack 4")
     return fourth, fifth
+
+
+def target_capture(tmp_path, strength):
+    """16-bit frames of a flat subject turned 10 degrees (albedo 0.7) and, in a corner, a flat
+    matte target facing the camera (albedo 0.5), under flashes of `strength`; their paths,
+    the lights, the subject's mask, the target's mask and the subject's normal."""
+    import cv2
+
+    lights = np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
+    turn = np.radians(10.0)
+    subject = np.array([np.sin(turn), 0.0, np.cos(turn)])
+    face, target = np.zeros((24, 32), bool), np.zeros((24, 32), bool)
+    face[6:, 10:] = True
+    target[:5, :6] = True
+    frames = np.zeros((5, 24, 32))
+    frames[:, face] = (0.7 * lights @ subject)[:, None]
+    frames[:, target] = 0.5 * lights[:, 2:]
+    paths = []
+    for k, f in enumerate(frames * strength[:, None, None]):
+        paths.append(tmp_path / f"f{k}.png")
+        cv2.imwrite(str(paths[-1]), np.round(np.clip(f, 0, 1) * 65535).astype(np.uint16))
+    return paths, lights, face, target, subject
+
+
+def mask_png(tmp_path, mask):
+    """`mask` written as `tmp_path/target_mask.png` (255 inside); its path."""
+    import cv2
+
+    path = tmp_path / "target_mask.png"
+    cv2.imwrite(str(path), mask.astype(np.uint8) * 255)
+    return path

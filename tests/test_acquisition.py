@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 import jaxps
+from helpers import mask_png, target_capture
 from jaxps import acquisition as acq
 
 
@@ -163,6 +164,53 @@ def test_load_capture_divides_out_frame_intensities(tmp_path):
     assert err["plain"] > 4 and err["default"] < 0.6 * err["plain"]
     with pytest.raises(ValueError, match="intensities"):
         acq.load_capture(paths, lights=lights, intensities="median")
+
+
+def test_load_capture_measures_the_flashes_on_a_reference_target(tmp_path):
+    """The subject is turned, so "frontal" over it (the default) misreads the flashes; over a
+    target facing the camera (`intensity_mask`) they are measured, and the subject's normal
+    comes out right."""
+    strength = np.array([1.0, 0.8, 1.1, 1.05, 0.9])
+    paths, lights, face, target, subject = target_capture(tmp_path, strength)
+    kw = dict(lights=lights, mask=face, linearize="none", register=False, check_quality=False)
+    default = acq.load_capture(paths, **kw)
+    cap = acq.load_capture(paths, intensity_mask=target, **kw)
+    expected = strength / np.exp(np.mean(np.log(strength)))
+    np.testing.assert_allclose(cap.intensities, expected, rtol=1e-3)
+    assert cap.intensity_method == "frontal"
+    assert np.max(np.abs(default.intensities / expected - 1)) > 0.02
+    np.testing.assert_allclose(  # the same from a mask file, with the target's normal given
+        acq.load_capture(paths, intensity_mask=mask_png(tmp_path, target),
+                         intensity_normal=[0, 0, 1], **kw).intensities, cap.intensities,
+        rtol=1e-6)
+
+    def error(c):
+        n = np.asarray(jaxps.photometric_stereo(c.images, c.lights, mask=face).normals)[face]
+        return np.degrees(np.arccos(np.clip(n @ subject, -1, 1))).max()
+
+    assert error(cap) < 0.05 and error(default) > 1.0
+
+
+def test_reference_target_errors_name_the_argument(tmp_path):
+    strength = np.ones(5)
+    paths, lights, face, target, _ = target_capture(tmp_path, strength)
+    kw = dict(lights=lights, mask=face, linearize="none", register=False, check_quality=False)
+    with pytest.raises(ValueError, match="intensity_mask: .* not intensities='semi_calibrated'"):
+        acq.load_capture(paths, intensity_mask=target, intensities="semi_calibrated", **kw)
+    with pytest.raises(ValueError, match="intensity_normal .* needs intensity_mask"):
+        acq.load_capture(paths, intensity_normal=[0, 0, 1], **kw)
+    with pytest.raises(ValueError, match="intensity_mask is empty"):
+        acq.load_capture(paths, intensity_mask=np.zeros_like(target), **kw)
+    with pytest.raises(ValueError, match=r"intensity_mask has shape \(3, 3\)"):
+        acq.load_capture(paths, intensity_mask=np.ones((3, 3), bool), **kw)
+    with pytest.raises(FileNotFoundError, match="intensity mask not found"):
+        acq.load_capture(paths, intensity_mask=tmp_path / "none.png", **kw)
+    black = np.zeros_like(target)
+    black[-3:, :3] = True  # off the subject and the target: 0 in every frame
+    with pytest.raises(ValueError, match="intensity_mask: the reference target's intensities"):
+        acq.load_capture(paths, intensity_mask=black, **kw)
+    with pytest.raises(ValueError, match="intensity_mask: .*faces away from light"):
+        acq.load_capture(paths, intensity_mask=target, intensity_normal=[1, 0, 0], **kw)
 
 
 def test_equalize_mean():

@@ -109,6 +109,29 @@ def test_semi_calibrated_intensities_report_their_fit(tmp_path, data, caplog, mo
     assert "without converging" in caplog.text
 
 
+def test_reconstruct_measures_the_flashes_on_a_reference_target(tmp_path):
+    """`--intensity-mask`: the flash strengths are measured on a target in view, and the
+    summary says so (frames of `test_acquisition._target_capture`)."""
+    import cv2
+    from helpers import mask_png, target_capture
+
+    strength = np.array([1.0, 0.8, 1.1, 1.05, 0.9])
+    paths, lights, face, target, _ = target_capture(tmp_path, strength)
+    np.savetxt(tmp_path / "lights.txt", lights)
+    cv2.imwrite(str(tmp_path / "face_mask.png"), face.astype(np.uint8) * 255)
+    mask = mask_png(tmp_path, target)
+    argv = ["reconstruct", *map(str, paths), "--lights", str(tmp_path / "lights.txt"),
+            "--mask", str(tmp_path / "face_mask.png"), "--no-register", "--no-check-quality",
+            "--intensity-mask", str(mask), "--intensity-normal", "0", "0", "1",
+            "--out", str(tmp_path / "run")]
+    assert main(argv) == 0
+    got = json.loads((tmp_path / "run" / "summary.json").read_text())["intensities"]
+    assert got["method"] == "frontal"
+    assert got["target"] == {"mask": str(mask), "normal": [0.0, 0.0, 1.0]}
+    np.testing.assert_allclose(got["per_frame"], strength / np.exp(np.mean(np.log(strength))),
+                               rtol=1e-3)
+
+
 def test_reconstruct_yale_five_lights_against_many_light_reference(tmp_path, data):
     folder = data / "yaleb" / "yaleB01"
     frames = [str(folder / f"yaleB01_P00{n}.pgm") for n in FIVE]

@@ -58,6 +58,10 @@ ADDED = {
 # before, kept for Cao et al.'s figures to the digit); only that entry of the snapshot rewritten.
 # Issue 16: `BRDFFit` gained `n_params` (the parameter count of `method="auto"`'s information
 # criterion); only that entry of the snapshot rewritten.
+# Issue 17: `intensity_estimate` gained `normal` (the mean normal of the "frontal" estimate's
+# region), and `load_capture` and `jaxps.cli.reconstruct` gained `intensity_mask` and
+# `intensity_normal` (flash strengths measured on a reference target in view); only those
+# three entries of the snapshot rewritten.
 # Issue 17: `load_capture` and `jaxps.cli.reconstruct` gained `register` (motion between frames
 # measured and undone by default) and `Capture` the fields `shifts` and `registered`; those three
 # entries rewritten.

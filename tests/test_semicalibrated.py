@@ -70,6 +70,30 @@ def test_intensity_estimates_skip_non_finite_pixels_and_reject_bad_lights():
                                      method=method)
 
 
+def test_frontal_over_a_reference_target_of_known_normal():
+    """A flat matte target turned 20 degrees, under flashes of known strength: "frontal" over
+    it with its normal gives the strengths exactly; taken as facing the camera, it does not."""
+    lights = np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
+    d = np.array([0.0, np.sin(np.radians(20.0)), np.cos(np.radians(20.0))])
+    shade = 0.5 * E_TRUE * (lights @ d)
+    images = np.broadcast_to(shade[:, None, None], (5, 6, 7)).astype(np.float32)
+    expected = E_TRUE / np.exp(np.mean(np.log(E_TRUE)))
+    got = jaxps.intensity_estimate(images, lights, method="frontal", normal=d)
+    np.testing.assert_allclose(got, expected, rtol=1e-5)
+    np.testing.assert_allclose(  # the default normal is the view axis
+        jaxps.intensity_estimate(images, lights, method="frontal", normal=[0, 0, 2]),
+        jaxps.intensity_estimate(images, lights, method="frontal"), rtol=1e-6)
+    assumed = np.asarray(jaxps.intensity_estimate(images, lights, method="frontal"))
+    assert np.max(np.abs(assumed / expected - 1)) > 0.05
+    with pytest.raises(ValueError, match="normal is the mean normal of the 'frontal'"):
+        jaxps.intensity_estimate(images, lights, method="mean", normal=d)
+    for bad in ([0, 0], [0, 0, 0], [np.nan, 0, 1]):
+        with pytest.raises(ValueError, match=r"normal must be a finite, non-zero \(3,\)"):
+            jaxps.intensity_estimate(images, lights, method="frontal", normal=bad)
+    with pytest.raises(ValueError, match=r"faces away from light\(s\) \[(\d, )*\d\]"):
+        jaxps.intensity_estimate(images, lights, method="frontal", normal=[1, 0, 0])
+
+
 def test_known_intensities_match_scaled_lights():
     scene, images = _scaled()
     res = jaxps.photometric_stereo(images, scene.lights, mask=scene.mask,

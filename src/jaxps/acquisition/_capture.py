@@ -87,6 +87,8 @@ def load_capture(
     linearize: str = "auto",
     check_quality: bool = True,
     register: bool = True,
+    intensity_mask: PathLike | np.ndarray | None = None,
+    intensity_normal: Sequence[float] | None = None,
 ) -> Capture:
     """Load a capture: frames, lights, ambient subtraction, face crop, mask, intensities.
 
@@ -125,11 +127,23 @@ def load_capture(
       motion is logged and left alone. The Yale B faces moved up to 1.7-3.5 px between frames;
       registering their five scanner frames lowered the median normal error by 0.6-1.8 degrees
       on every subject (`benchmarks/bench_faces.py --register`; docs/captures.md, "Motion").
+    - `intensity_mask`: a mask image path or `(H, W)` bool array (full frame) of a flat, matte
+      reference target in view, fixed to the scanner: `intensities` ("frontal" or "mean") is
+      estimated over it, on the frames as read (before motion is undone and the face
+      cropped), instead of over `mask`. With `intensity_normal`, the target's normal in the
+      camera frame (default: facing the camera), "frontal" needs no assumption about the
+      subject's pose (docs/captures.md, "A reference target in view").
 
     **Raises:** `FileNotFoundError`/`ValueError` naming the offending file or argument.
     """
     if intensities not in INTENSITY_METHODS:  # before any file is read
         raise ValueError(f"intensities must be one of {INTENSITY_METHODS}, got {intensities!r}")
+    if intensity_mask is not None and intensities not in ("frontal", "mean"):
+        raise ValueError("intensity_mask: the intensities of a reference target are estimated "
+                         f"by 'frontal' or 'mean', not intensities={intensities!r}")
+    if intensity_normal is not None and (intensity_mask is None or intensities != "frontal"):
+        raise ValueError("intensity_normal is the reference target's normal: it needs "
+                         "intensity_mask and intensities='frontal'")
     if isinstance(frames, (str, os.PathLike)):
         paths = list_frames(frames)
         ambient = _folder_ambient(frames, ambient)
@@ -141,7 +155,8 @@ def load_capture(
         if not paths:
             raise ValueError("frames: empty list of files")
     # Named before any frame is read: a missing file otherwise reads as a missing frame.
-    for what, path in (("ambient frame", ambient), ("mask", mask)):
+    for what, path in (("ambient frame", ambient), ("mask", mask),
+                       ("intensity mask", intensity_mask)):
         if (isinstance(path, (str, os.PathLike)) and not _is_auto(path)
                 and not os.path.isfile(path)):
             raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
@@ -187,10 +202,34 @@ def load_capture(
     else:
         mask_array = read_mask(mask, images.shape[1:3])
 
+    if isinstance(intensity_mask, np.ndarray):
+        if intensity_mask.shape != images.shape[1:3]:
+            raise ValueError(f"intensity_mask has shape {intensity_mask.shape}, frames have "
+                             f"{images.shape[1:3]}")
+        target = intensity_mask.astype(bool)
+    else:
+        target = None if intensity_mask is None else read_mask(intensity_mask,
+                                                               images.shape[1:3])
+    if target is not None and not target.any():
+        raise ValueError("intensity_mask is empty: no pixel of the reference target")
+
     given = names
     if check_quality:  # inside the given mask: the frames are judged where they will be used
         images, saturated, names, light_array, _ = screen_capture(
             images, saturated, names, light_array, mask=mask_array)
+
+    method = intensities
+    if light_array is None and method in ("frontal", "semi_calibrated"):
+        if method == "semi_calibrated":
+            raise ValueError("intensities='semi_calibrated' needs lights")
+        method = "mean"
+    e, fit = np.ones(len(images), np.float32), None
+    if target is not None:  # the target stays where it is: measured before any move or crop
+        try:
+            e = _intensities(images, light_array, target, method, intensity_normal)[0]
+        except ValueError as err:  # asked for by name: an error, not a silent fallback
+            raise ValueError(f"intensity_mask: the reference target's intensities: {err}") \
+                from err
 
     shifts, border = None, 0
     if register:
@@ -214,27 +253,14 @@ def load_capture(
         keep = np.zeros(full_size, bool)
         keep[border:-border, border:-border] = True
         mask_array = mask_array & (keep if box is None else crop(keep, box))
-    method = intensities
-    if light_array is None and method in ("frontal", "semi_calibrated"):
-        if method == "semi_calibrated":
-            raise ValueError("intensities='semi_calibrated' needs lights")
-        method = "mean"
-    e, fit = np.ones(len(images), np.float32), None
-    if method != "none":
-        grey = images if images.ndim == 3 else images.mean(axis=-1)
-        # "mean" does not look at the lights: without any, give it view-axis placeholders.
-        lights_for = (np.tile(np.float32([0, 0, 1]), (len(images), 1)) if light_array is None
-                      else light_array)
+    if target is None:
         try:
-            if method == "semi_calibrated":
-                e, fit = _semi_calibrated(grey, lights_for, mask_array, ~saturated)
-            else:
-                e = np.asarray(intensity_estimate(grey, lights_for, mask=mask_array,
-                                                  method=method), np.float32)
+            e, fit = _intensities(images, light_array, mask_array, method, saturated=saturated)
         except ValueError as err:  # a black frame: keep the capture, say so
             logging.getLogger("jaxps").warning(
                 "load_capture: intensities=%r failed (%s); frames used as read", method, err)
-            e, method = np.ones(len(images), np.float32), "none"
+            method = "none"
+    if method != "none":
         shape = (-1,) + (1,) * (images.ndim - 1)
         images = np.divide(images, e.reshape(shape),
                            out=aligned_empty(images.shape, np.float32))
@@ -242,6 +268,21 @@ def load_capture(
                    saturated, names, box, (1 / e).astype(np.float32),
                    tuple(n for n in given if n not in names), e, method, shifts, border > 0,
                    fit)
+
+
+def _intensities(images, lights, region, method, normal=None, saturated=None):
+    """`load_capture`'s intensities `(K,)` float32 by `method` over `region`, and the
+    semi-calibrated fit's report (else None). Raises `ValueError` where the estimate fails,
+    e.g. on a black frame."""
+    if method == "none":
+        return np.ones(len(images), np.float32), None
+    grey = images if images.ndim == 3 else images.mean(axis=-1)
+    if method == "semi_calibrated":
+        return _semi_calibrated(grey, lights, region, ~saturated)
+    # "mean" does not look at the lights: without any, give it view-axis placeholders.
+    lights = np.tile(np.float32([0, 0, 1]), (len(images), 1)) if lights is None else lights
+    e = intensity_estimate(grey, lights, mask=region, method=method, normal=normal)
+    return np.asarray(e, np.float32), None
 
 
 def _semi_calibrated(grey, lights, mask, sample_mask):

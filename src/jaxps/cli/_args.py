@@ -62,6 +62,13 @@ def reconstruct_parser(sub) -> None:
                    help="use the frames as read (same as --intensities none)")
     p.add_argument("--equalize", dest="intensities", action="store_const", const="mean",
                    help="plain mean equalisation (same as --intensities mean)")
+    p.add_argument("--intensity-mask", metavar="MASK",
+                   help="mask image (full frame) of a flat, matte reference target in view, "
+                   "fixed to the scanner: each frame's flash strength is measured on it "
+                   "instead of on the face (frontal or mean; see load_capture)")
+    p.add_argument("--intensity-normal", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="the reference target's normal in the camera frame (default 0 0 1: "
+                   "facing the camera)")
     add_register_arg(p)
     p.add_argument("--shadow-threshold", type=float, default=None,
                    help="drop samples below this intensity from each pixel's solve")

@@ -72,6 +72,8 @@ def reconstruct(
     obj: bool = False,
     points: bool = False,
     register: bool = True,
+    intensity_mask=None,
+    intensity_normal=None,
 ) -> dict:
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
@@ -79,7 +81,8 @@ def reconstruct(
     `"dropped_frames"` in the summary; on by default, as in `load_capture`). `intensities`:
     see `load_capture` (the summary's `"intensities"` holds the method, the per-frame
     estimates and, for `"semi_calibrated"`, the fit's report `"fit"`; `"gains"` holds their
-    inverses).
+    inverses). `intensity_mask`, `intensity_normal`: a reference target in view, as in
+    `load_capture` (named in the summary's `"intensities"` as `"target"`).
     `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
     the measured shifts and whether the frames were moved).
     `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`)."""
@@ -92,7 +95,8 @@ def reconstruct(
         cap = stages.run("load frames", load_capture, frames, lights=lights,
                          yale_names=yale_names, ambient=ambient, mask=mask,
                          intensities=intensities, crop_face=crop_face,
-                         check_quality=check_quality, register=register)
+                         check_quality=check_quality, register=register,
+                         intensity_mask=intensity_mask, intensity_normal=intensity_normal)
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
 
@@ -125,7 +129,8 @@ def reconstruct(
         "gains": cap.gains.round(6).tolist(),
         "intensities": {"method": cap.intensity_method,
                         "per_frame": np.asarray(cap.intensities).round(6).tolist(),
-                        **({"fit": cap.intensity_fit} if cap.intensity_fit else {})},
+                        **({"fit": cap.intensity_fit} if cap.intensity_fit else {}),
+                        **_target(intensity_mask, intensity_normal)},
         "motion": _motion(cap),
         "method": method,
         "integration": integration,
@@ -174,6 +179,17 @@ def _write_outputs(out, res, height, ok, *, obj=False, points=False, title="", t
     return scale, meshes["faces"]
 
 
+def _target(intensity_mask, intensity_normal) -> dict:
+    """The summary's record of a reference target (`load_capture(intensity_mask=...)`)."""
+    if intensity_mask is None:
+        return {}
+    where = (os.fspath(intensity_mask) if isinstance(intensity_mask, (str, os.PathLike))
+             else f"array of {int(np.count_nonzero(intensity_mask))} pixels")
+    normal = [0.0, 0.0, 1.0] if intensity_normal is None else [float(v) for v in
+                                                                 intensity_normal]
+    return {"target": {"mask": where, "normal": normal}}
+
+
 def _motion(cap) -> dict:
     """The summary's record of `load_capture`'s motion step."""
     shifts = None if cap.shifts is None else np.asarray(cap.shifts).round(3).tolist()
@@ -190,6 +206,7 @@ def run(args) -> int:
         shadow_threshold=args.shadow_threshold, method=args.method,
         integration=args.integration, report=args.report, check_quality=args.check_quality,
         obj=args.obj, points=args.points, register=args.register,
+        intensity_mask=args.intensity_mask, intensity_normal=args.intensity_normal,
     )
     if summary["dropped_frames"]:
         print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))
@@ -281,7 +298,9 @@ def _run_many(args) -> int:
     (named in the table), else 0."""
     load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
                         mask=args.mask, crop_face=args.crop_face,
-                        intensities=args.intensities, register=args.register)
+                        intensities=args.intensities, register=args.register,
+                        intensity_mask=args.intensity_mask,
+                        intensity_normal=args.intensity_normal)
     results, rows = reconstruct_many(args.frames, method=args.method,
                                      check_quality=args.check_quality, **load_options)
     os.makedirs(args.out, exist_ok=True)
