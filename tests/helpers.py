@@ -60,12 +60,14 @@ def assert_reuses_dropped_results(solve, expected, last=None):
     return fourth, fifth
 
 
-def target_capture(tmp_path, strength):
+def target_capture(tmp_path, strength, clip=None):
     """16-bit frames of a flat subject turned 10 degrees (albedo 0.7) and, in a corner, a flat
     matte target facing the camera (albedo 0.5), under flashes of `strength`; their paths,
-    the lights, the subject's mask, the target's mask and the subject's normal."""
+    the lights, the subject's mask, the target's mask and the subject's normal. `clip`:
+    (frame, row, column) of the target set to full scale (saturated) in that frame."""
     import cv2
 
+    tmp_path.mkdir(parents=True, exist_ok=True)
     lights = np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
     turn = np.radians(10.0)
     subject = np.array([np.sin(turn), 0.0, np.cos(turn)])
@@ -75,8 +77,12 @@ def target_capture(tmp_path, strength):
     frames = np.zeros((5, 24, 32))
     frames[:, face] = (0.7 * lights @ subject)[:, None]
     frames[:, target] = 0.5 * lights[:, 2:]
+    frames = frames * strength[:, None, None]
+    if clip is not None:
+        frame, rows, cols = clip
+        frames[frame, :5, :6][rows, cols] = 1.0
     paths = []
-    for k, f in enumerate(frames * strength[:, None, None]):
+    for k, f in enumerate(frames):
         paths.append(tmp_path / f"f{k}.png")
         cv2.imwrite(str(paths[-1]), np.round(np.clip(f, 0, 1) * 65535).astype(np.uint16))
     return paths, lights, face, target, subject

@@ -184,6 +184,14 @@ def test_load_capture_measures_the_flashes_on_a_reference_target(tmp_path):
                          intensity_normal=[0, 0, 1], **kw).intensities, cap.intensities,
         rtol=1e-6)
 
+    # A target pixel clipped in one frame is left out of every frame's mean.
+    clipped = target_capture(tmp_path / "clipped", strength, clip=(1, 0, 0))[0]
+    np.testing.assert_allclose(acq.load_capture(clipped, intensity_mask=target, **kw).intensities,
+                               cap.intensities, rtol=1e-6)
+    blown = target_capture(tmp_path / "blown", strength, clip=(2, slice(None), slice(None)))[0]
+    with pytest.raises(ValueError, match="every pixel of the reference target is saturated"):
+        acq.load_capture(blown, intensity_mask=target, **kw)
+
     def error(c):
         n = np.asarray(jaxps.photometric_stereo(c.images, c.lights, mask=face).normals)[face]
         return np.degrees(np.arccos(np.clip(n @ subject, -1, 1))).max()

@@ -130,7 +130,7 @@ def load_capture(
     - `intensity_mask`: a mask image path or `(H, W)` bool array (full frame) of a flat, matte
       reference target in view, fixed to the scanner: `intensities` ("frontal" or "mean") is
       estimated over it, on the frames as read (before motion is undone and the face
-      cropped), instead of over `mask`. With `intensity_normal`, the target's normal in the
+      cropped), instead of over `mask`, leaving out its pixels saturated in any frame. With `intensity_normal`, the target's normal in the
       camera frame (default: facing the camera), "frontal" needs no assumption about the
       subject's pose (docs/captures.md, "A reference target in view").
 
@@ -225,8 +225,12 @@ def load_capture(
         method = "mean"
     e, fit = np.ones(len(images), np.float32), None
     if target is not None:  # the target stays where it is: measured before any move or crop
+        lit = target & ~saturated.any(axis=0)  # a clipped sample is no measure of its flash
+        if not lit.any():
+            raise ValueError("intensity_mask: every pixel of the reference target is saturated "
+                             "in some frame; use a darker (grey) target or a shorter exposure")
         try:
-            e = _intensities(images, light_array, target, method, intensity_normal)[0]
+            e = _intensities(images, light_array, lit, method, intensity_normal)[0]
         except ValueError as err:  # asked for by name: an error, not a silent fallback
             raise ValueError(f"intensity_mask: the reference target's intensities: {err}") \
                 from err
