@@ -48,12 +48,12 @@ import jaxps
 
 try:
     from benchmarks import bench_faces as faces
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import RESULTS, ROOT, environment, write_json
     from benchmarks.bench_light_layout import tilted_face
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
     from benchmarks import bench_faces as faces
-    from benchmarks._common import environment, write_json
+    from benchmarks._common import RESULTS, ROOT, environment, write_json
     from benchmarks.bench_light_layout import tilted_face
 
 H, W = 256, 224
@@ -170,6 +170,7 @@ def yale_subject(subject, register, folder):
     row = {"floor_median_deg": floor["median_deg"], "reference_intensities": {
         f"{a:+d},{e:+d}": float(ref_e[keys.index((a, e))]) for a, e in faces.CROSS
         if (a, e) in keys}}
+    maps = {}
     for name, options in (("command line (frontal over the face)", {}),
                           ("command line, --intensity-mask", {"intensity_mask": target})):
         out = folder / name.replace(" ", "_").replace(",", "").replace("(", "").replace(")", "")
@@ -179,15 +180,39 @@ def yale_subject(subject, register, folder):
         status = np.load(out / "status.npy")
         inside = ok & ~target & (status != jaxps.Status.MASKED)
         stats = jaxps.evaluate.angular_stats(normals, ref.normals, mask=inside)
+        maps[name] = np.where(inside, np.asarray(jaxps.angular_error(normals, ref.normals)),
+                              np.nan)
         row[name] = {"median_deg": stats["median_deg"], "mean_deg": stats["mean_deg"],
                      "intensities": summary["intensities"]["per_frame"],
                      "dropped": summary["dropped_frames"], "motion": summary["motion"]}
     print(subject, {k: round(v["median_deg"], 2) for k, v in row.items() if isinstance(v, dict)
                     and "median_deg" in v}, "floor", round(floor["median_deg"], 2), flush=True)
-    return row
+    return row, maps
 
 
-def yale(register) -> dict:
+def plot(subject, maps, path, registered):
+    """The error maps of `subject`: the command line without and with the card."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, len(maps), figsize=(2.8 * len(maps) + 0.8, 3.3))
+    for ax, (name, err) in zip(axes, maps.items()):
+        im = ax.imshow(err, vmin=0, vmax=20, cmap="magma")
+        label = name.replace("command line (frontal over the face)", "jaxps reconstruct")
+        label = label.replace("command line, ", "with ")
+        ax.set_title(f"{label}\nmedian {np.nanmedian(err):.2f} deg", fontsize=8)
+        ax.axis("off")
+    fig.colorbar(im, ax=axes, fraction=0.03, label="angular error (deg)")
+    fig.suptitle(f"{subject}, five cross frames and an emulated card:\nerror against the "
+                 f"50-degree reference{', registered' * registered}", fontsize=8, y=1.08)
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def yale(register, figure_subject="yaleB03") -> dict:
+    import shutil
     import tempfile
 
     rows = {}
@@ -195,7 +220,11 @@ def yale(register) -> dict:
         for subject in faces.SUBJECTS:
             folder = pathlib.Path(tmp) / subject
             folder.mkdir()
-            rows[subject] = yale_subject(subject, register, folder)
+            rows[subject], maps = yale_subject(subject, register, folder)
+            if subject == figure_subject:
+                name = "reference_target_yale" + "_registered" * register
+                plot(subject, maps, RESULTS / f"{name}.png", register)
+                shutil.copy(RESULTS / f"{name}.png", ROOT / "docs" / "images" / f"{name}.png")
     names = [k for k, v in next(iter(rows.values())).items() if isinstance(v, dict)
              and "median_deg" in v]
     return {"subjects": rows, "median_over_subjects_deg": {
