@@ -61,11 +61,10 @@ TARGET = (slice(4, 28), slice(4, 28))  # rows, columns: a corner outside the fac
 TARGET_ALBEDO = 0.5
 
 
-def turned(degrees, about="x"):
-    """The unit normal (0, 0, 1) turned by `degrees` about the camera's x (up) or y axis."""
+def turned(degrees):
+    """The unit normal (0, 0, 1) turned up by `degrees` (about the camera's x axis)."""
     t = np.radians(degrees)
-    return np.array([0.0, np.sin(t), np.cos(t)]) if about == "x" else \
-        np.array([np.sin(t), 0.0, np.cos(t)])
+    return np.array([0.0, np.sin(t), np.cos(t)])
 
 
 def capture(seed, lights, specular, target_normal, noise=0.005):
