@@ -184,6 +184,12 @@ def yale_subject(subject, register, folder):
         row[name] = {"median_deg": stats["median_deg"], "mean_deg": stats["mean_deg"],
                      "intensities": summary["intensities"]["per_frame"],
                      "dropped": summary["dropped_frames"], "motion": summary["motion"]}
+    # the card's strengths against the reference's, over the frames the checks kept
+    kept = [k for k in faces.CROSS if k in keys]
+    want = np.array([ref_e[keys.index(k)] for k in kept])
+    got = np.array(row["command line, --intensity-mask"]["intensities"])
+    row["card_intensity_error_largest"] = float(np.max(np.abs(
+        got / (want / np.exp(np.mean(np.log(want)))) - 1)))
     print(subject, {k: round(v["median_deg"], 2) for k, v in row.items() if isinstance(v, dict)
                     and "median_deg" in v}, "floor", round(floor["median_deg"], 2), flush=True)
     return row, maps
