@@ -568,6 +568,41 @@ def test_cli_relight_yale(data, tmp_path):
     assert main([*args[:6], "--yale-names", "--light", "35", "--out", str(out)]) == 2
 
 
+def test_cli_relight_measures_the_flashes_on_a_reference_target(data, tmp_path):
+    """`jaxps relight --intensity-mask`: yaleB01's cross frames with a matte card painted into
+    a corner under flashes of known strength; relight.json reports them and the card."""
+    import json
+    import pathlib
+
+    import cv2
+
+    from jaxps.cli import main
+
+    args = yale_cross_args(data, "yaleB01")
+    strength = np.array([1.0, 0.9, 1.1, 1.05, 0.95])
+    card = np.zeros((192, 168), bool)
+    card[2:14, 2:14] = True
+    frames = []
+    for path, e in zip(args[1:6], strength):
+        frame = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+        lz = jaxps.lights_from_angles(*jaxps.parse_yale_name(path))[0, 2]
+        frame[card] = np.uint8(round(255 * 0.5 * e * float(lz)))
+        frames.append(str(tmp_path / pathlib.Path(path).name))
+        cv2.imwrite(frames[-1], frame)
+    ambient = cv2.imread(args[8], cv2.IMREAD_UNCHANGED)
+    ambient[card] = 0
+    cv2.imwrite(str(tmp_path / "ambient.pgm"), ambient)
+    cv2.imwrite(str(tmp_path / "card.png"), card.astype(np.uint8) * 255)
+    out = tmp_path / "relit"
+    assert main(["relight", *frames, "--yale-names", "--ambient", str(tmp_path / "ambient.pgm"),
+                 "--method", "lambertian", "--circle-frames", "1",
+                 "--intensity-mask", str(tmp_path / "card.png"), "--out", str(out)]) == 0
+    got = json.loads((out / "relight.json").read_text())["intensities"]
+    assert got["method"] == "frontal" and got["target"]["mask"] == str(tmp_path / "card.png")
+    np.testing.assert_allclose(got["per_frame"], strength / np.exp(np.mean(np.log(strength))),
+                               rtol=0.01)  # an 8-bit card
+
+
 def test_cli_relight_default_is_wrap_ggx_and_beats_lambert_on_a_held_out_light(data, tmp_path):
     """`jaxps relight` without --method fits wrap_ggx; its image under a held-out light
     (-35, +15) is closer to the photograph than Lambert's (bench_relight.py has the rest)."""

@@ -14,8 +14,8 @@ INTENSITY_METHODS = ("none", "mean", "frontal", "semi_calibrated")
 PS_METHODS = ("l2", "l1", "barsky", "irls", "sbl", "semi_calibrated", "oren_nayar")
 INTEGRATION_METHODS = ("fc", "dct", "lsq", "bilateral", "auto")
 
-__all__ = ["add_light_args", "add_register_arg", "demo_parser", "reconstruct_parser",
-           "relight_parser", "report_parser"]
+__all__ = ["add_intensity_args", "add_light_args", "add_register_arg", "demo_parser",
+           "reconstruct_parser", "relight_parser", "report_parser"]
 
 
 def add_register_arg(p) -> None:
@@ -23,6 +23,25 @@ def add_register_arg(p) -> None:
                    help="use the frames where they are; by default motion between frames "
                    "(0.5-4 px against the frame lit closest to the view axis) is measured and "
                    "undone (see load_capture)")
+
+
+def add_intensity_args(p) -> None:
+    """How each frame's flash strength is estimated and divided out (`load_capture`)."""
+    p.add_argument("--intensities", default="frontal", choices=INTENSITY_METHODS,
+                   help="per-frame light intensity estimate divided out before solving "
+                   "(default frontal: mean equalisation corrected for each light's obliquity; "
+                   "see load_capture)")
+    p.add_argument("--no-equalize", dest="intensities", action="store_const", const="none",
+                   help="use the frames as read (same as --intensities none)")
+    p.add_argument("--equalize", dest="intensities", action="store_const", const="mean",
+                   help="plain mean equalisation (same as --intensities mean)")
+    p.add_argument("--intensity-mask", metavar="MASK",
+                   help="mask image (full frame) of a flat, matte reference target in view, "
+                   "fixed to the scanner: each frame's flash strength is measured on it "
+                   "instead of on the face (frontal or mean; see load_capture)")
+    p.add_argument("--intensity-normal", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="the reference target's normal in the camera frame (default 0 0 1: "
+                   "facing the camera)")
 
 
 def add_light_args(p) -> None:
@@ -54,21 +73,7 @@ def reconstruct_parser(sub) -> None:
     add_light_args(p)
     p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
     p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
-    p.add_argument("--intensities", default="frontal", choices=INTENSITY_METHODS,
-                   help="per-frame light intensity estimate divided out before solving "
-                   "(default frontal: mean equalisation corrected for each light's obliquity; "
-                   "see load_capture)")
-    p.add_argument("--no-equalize", dest="intensities", action="store_const", const="none",
-                   help="use the frames as read (same as --intensities none)")
-    p.add_argument("--equalize", dest="intensities", action="store_const", const="mean",
-                   help="plain mean equalisation (same as --intensities mean)")
-    p.add_argument("--intensity-mask", metavar="MASK",
-                   help="mask image (full frame) of a flat, matte reference target in view, "
-                   "fixed to the scanner: each frame's flash strength is measured on it "
-                   "instead of on the face (frontal or mean; see load_capture)")
-    p.add_argument("--intensity-normal", type=float, nargs=3, metavar=("X", "Y", "Z"),
-                   help="the reference target's normal in the camera frame (default 0 0 1: "
-                   "facing the camera)")
+    add_intensity_args(p)
     add_register_arg(p)
     p.add_argument("--shadow-threshold", type=float, default=None,
                    help="drop samples below this intensity from each pixel's solve")
@@ -141,6 +146,7 @@ def relight_parser(sub) -> None:
     p.add_argument("--check-quality", action=argparse.BooleanOptionalAction, default=True,
                    help="drop frames flagged by jaxps.check_frames (e.g. interlace-combed) "
                    "before fitting (default; --no-check-quality keeps every frame)")
+    add_intensity_args(p)
     add_register_arg(p)
     p.add_argument("--light", action="append", default=[], metavar="AZ,EL",
                    help="a new light, azimuth,elevation in degrees (Yale B); repeatable; write "

@@ -127,10 +127,7 @@ def reconstruct(
                  "channels": int(cap.images.shape[3]) if cap.images.ndim == 4 else 1},
         "crop": cap.crop,
         "gains": cap.gains.round(6).tolist(),
-        "intensities": {"method": cap.intensity_method,
-                        "per_frame": np.asarray(cap.intensities).round(6).tolist(),
-                        **({"fit": cap.intensity_fit} if cap.intensity_fit else {}),
-                        **_target(intensity_mask, intensity_normal)},
+        "intensities": _intensities(cap, intensity_mask, intensity_normal),
         "motion": _motion(cap),
         "method": method,
         "integration": integration,
@@ -179,15 +176,20 @@ def _write_outputs(out, res, height, ok, *, obj=False, points=False, title="", t
     return scale, meshes["faces"]
 
 
-def _target(intensity_mask, intensity_normal) -> dict:
-    """The summary's record of a reference target (`load_capture(intensity_mask=...)`)."""
-    if intensity_mask is None:
-        return {}
-    where = (os.fspath(intensity_mask) if isinstance(intensity_mask, (str, os.PathLike))
-             else f"array of {int(np.count_nonzero(intensity_mask))} pixels")
-    normal = [0.0, 0.0, 1.0] if intensity_normal is None else [float(v) for v in
-                                                                 intensity_normal]
-    return {"target": {"mask": where, "normal": normal}}
+def _intensities(cap, intensity_mask, intensity_normal) -> dict:
+    """The summary's record of `load_capture`'s flash strengths: the method, the per-frame
+    estimates, the semi-calibrated fit's report and the reference target, where there are."""
+    out = {"method": cap.intensity_method,
+           "per_frame": np.asarray(cap.intensities).round(6).tolist()}
+    if cap.intensity_fit:
+        out["fit"] = cap.intensity_fit
+    if intensity_mask is not None:
+        where = (os.fspath(intensity_mask) if isinstance(intensity_mask, (str, os.PathLike))
+                 else f"array of {int(np.count_nonzero(intensity_mask))} pixels")
+        normal = [0.0, 0.0, 1.0] if intensity_normal is None else [float(v) for v in
+                                                                     intensity_normal]
+        out["target"] = {"mask": where, "normal": normal}
+    return out
 
 
 def _motion(cap) -> dict:

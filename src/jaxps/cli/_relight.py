@@ -17,7 +17,7 @@ from ..lights import lights_from_angles
 from ..ps import photometric_stereo
 from ..reflectance import fit_brdf, relight
 from ..report._writers import write_json
-from ._reconstruct import _motion
+from ._reconstruct import _intensities, _motion
 
 __all__ = ["circle_lights", "relight_capture", "run"]
 
@@ -51,6 +51,9 @@ def relight_capture(
     seed: int = 0,
     check_quality: bool = True,
     register: bool = True,
+    intensities: str = "frontal",
+    intensity_mask=None,
+    intensity_normal=None,
 ) -> dict:
     """Fit `method` to a capture and write relit PNGs, `relight.gif` and `relight.json` to `out`.
 
@@ -69,6 +72,8 @@ def relight_capture(
       inconsistent) before fitting; they are listed under `"dropped_frames"` in the summary
       (on by default, as in `load_capture`).
     - `register`: undo motion between frames (see `load_capture`; `"motion"` in the summary).
+    - `intensities`, `intensity_mask`, `intensity_normal`: each frame's flash strength, as for
+      `load_capture` (`"intensities"` in the summary, as `jaxps reconstruct` writes it).
 
     **Returns:** the summary written to `relight.json` (fit report, files, timings).
     """
@@ -84,7 +89,8 @@ def relight_capture(
     times = {}
     t = time.perf_counter()
     cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask,
-                       check_quality=check_quality, register=register)
+                       check_quality=check_quality, register=register, intensities=intensities,
+                       intensity_mask=intensity_mask, intensity_normal=intensity_normal)
     if cap.lights is None:
         raise ValueError("no lights: give --lights FILE or --yale-names")
     images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
@@ -120,6 +126,7 @@ def relight_capture(
     fit = model.fit._asdict()
     summary = {
         "frames": list(cap.names), "dropped_frames": list(cap.dropped), "method": method,
+        "intensities": _intensities(cap, intensity_mask, intensity_normal),
         "motion": _motion(cap),
         "fit": fit,
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
@@ -144,7 +151,9 @@ def run(args) -> int:
         ambient=args.ambient, mask=args.mask, method=args.method, new_lights=new_lights,
         circle_zenith_deg=args.circle_zenith, circle_frames=args.circle_frames,
         n_samples=args.samples, max_steps=args.max_steps, seed=args.seed,
-        check_quality=args.check_quality, register=args.register)
+        check_quality=args.check_quality, register=args.register,
+        intensities=args.intensities, intensity_mask=args.intensity_mask,
+        intensity_normal=args.intensity_normal)
     if s["dropped_frames"]:
         print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
     fit = s["fit"]
