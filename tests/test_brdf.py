@@ -568,7 +568,7 @@ def test_cli_relight_yale(data, tmp_path):
     assert main([*args[:6], "--yale-names", "--light", "35", "--out", str(out)]) == 2
 
 
-def test_cli_relight_measures_the_flashes_on_a_reference_target(data, tmp_path):
+def test_cli_relight_measures_the_flashes_on_a_reference_target(data, tmp_path, capsys):
     """`jaxps relight --intensity-mask`: yaleB01's cross frames with a matte card painted into
     a corner under flashes of known strength; relight.json reports them and the card."""
     import json
@@ -599,6 +599,8 @@ def test_cli_relight_measures_the_flashes_on_a_reference_target(data, tmp_path):
                  "--intensity-mask", str(tmp_path / "card.png"), "--out", str(out)]) == 0
     got = json.loads((out / "relight.json").read_text())["intensities"]
     assert got["method"] == "frontal" and got["target"]["mask"] == str(tmp_path / "card.png")
+    assert "relight: flash strengths measured on the card: " + " ".join(
+        f"{v:.3f}" for v in got["per_frame"]) in capsys.readouterr().out
     np.testing.assert_allclose(got["per_frame"], strength / np.exp(np.mean(np.log(strength))),
                                rtol=0.01)  # an 8-bit card
 

@@ -109,7 +109,7 @@ def test_semi_calibrated_intensities_report_their_fit(tmp_path, data, caplog, mo
     assert "without converging" in caplog.text
 
 
-def test_reconstruct_measures_the_flashes_on_a_reference_target(tmp_path):
+def test_reconstruct_measures_the_flashes_on_a_reference_target(tmp_path, capsys):
     """`--intensity-mask`: the flash strengths are measured on a target in view, and the
     summary says so (frames of `test_acquisition._target_capture`)."""
     import cv2
@@ -126,6 +126,9 @@ def test_reconstruct_measures_the_flashes_on_a_reference_target(tmp_path):
             "--out", str(tmp_path / "run")]
     assert main(argv) == 0
     got = json.loads((tmp_path / "run" / "summary.json").read_text())["intensities"]
+    shown = "flash strengths measured on the card: " + " ".join(
+        f"{v:.3f}" for v in got["per_frame"])  # what the operator sees, e.g. 1.038 0.830 ...
+    assert shown in capsys.readouterr().out
     assert got["method"] == "frontal"
     assert got["target"] == {"mask": str(mask), "normal": [0.0, 0.0, 1.0]}
     np.testing.assert_allclose(got["per_frame"], strength / np.exp(np.mean(np.log(strength))),

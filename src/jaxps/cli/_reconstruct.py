@@ -192,6 +192,12 @@ def _intensities(cap, intensity_mask, intensity_normal) -> dict:
     return out
 
 
+def _card_line(intensities) -> str:
+    """What the reference card measured, for the operator to check at a glance."""
+    return ("flash strengths measured on the card: "
+            + " ".join(f"{v:.3f}" for v in intensities["per_frame"]))
+
+
 def _motion(cap) -> dict:
     """The summary's record of `load_capture`'s motion step."""
     shifts = None if cap.shifts is None else np.asarray(cap.shifts).round(3).tolist()
@@ -215,6 +221,8 @@ def run(args) -> int:
     if summary["motion"]["registered"]:
         largest = np.abs(np.asarray(summary["motion"]["shifts_px"])).max()
         print(f"reconstruct: frames moved up to {largest:.2f} px; registered")
+    if "target" in summary["intensities"]:
+        print("reconstruct: " + _card_line(summary["intensities"]))
     counts = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
     size = summary["size"]
     print(f"reconstructed {size['frames']} frames of {size['height']}x{size['width']} "

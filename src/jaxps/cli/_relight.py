@@ -17,7 +17,7 @@ from ..lights import lights_from_angles
 from ..ps import photometric_stereo
 from ..reflectance import fit_brdf, relight
 from ..report._writers import write_json
-from ._reconstruct import _intensities, _motion
+from ._reconstruct import _card_line, _intensities, _motion
 
 __all__ = ["circle_lights", "relight_capture", "run"]
 
@@ -156,6 +156,8 @@ def run(args) -> int:
         intensity_normal=args.intensity_normal)
     if s["dropped_frames"]:
         print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
+    if "target" in s["intensities"]:
+        print("relight: " + _card_line(s["intensities"]))
     fit = s["fit"]
     print(f"relight: {args.method} on {len(s['frames'])} frames, {s['mask_pixels']} pixels: "
           f"training RMSE {fit['rmse']:.4g} (x255 = {s['fit_rmse_gray_8bit']:.2f}), "
