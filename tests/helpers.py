@@ -95,3 +95,30 @@ def mask_png(tmp_path, mask):
     path = tmp_path / "target_mask.png"
     cv2.imwrite(str(path), mask.astype(np.uint8) * 255)
     return path
+
+
+def yale_frames_with_card(frames, ambient, strengths, out):
+    """Yale B `frames` (paths) copied to `out` with a matte card (albedo 0.5, facing the camera)
+    painted into their 12x12 top-left corner under flashes of `strengths`, and `ambient` with
+    that corner 0. Returns the new frame paths, the new ambient path, the card's mask and the
+    path of that mask written as a PNG."""
+    import pathlib
+
+    import cv2
+
+    card = np.zeros((192, 168), bool)
+    card[2:14, 2:14] = True
+    paths = []
+    for path, e in zip(frames, strengths):
+        frame = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        lz = jaxps.lights_from_angles(*jaxps.parse_yale_name(path))[0, 2]
+        frame[card] = np.uint8(round(255 * 0.5 * e * float(lz)))
+        paths.append(out / pathlib.Path(path).name)
+        cv2.imwrite(str(paths[-1]), frame)
+    dark = cv2.imread(str(ambient), cv2.IMREAD_UNCHANGED)
+    dark[card] = 0
+    ambient_path = out / pathlib.Path(ambient).name
+    cv2.imwrite(str(ambient_path), dark)
+    mask_path = out / "card.png"
+    cv2.imwrite(str(mask_path), card.astype(np.uint8) * 255)
+    return paths, ambient_path, card, mask_path

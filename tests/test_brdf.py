@@ -572,33 +572,19 @@ def test_cli_relight_measures_the_flashes_on_a_reference_target(data, tmp_path, 
     """`jaxps relight --intensity-mask`: yaleB01's cross frames with a matte card painted into
     a corner under flashes of known strength; relight.json reports them and the card."""
     import json
-    import pathlib
 
-    import cv2
-
+    from helpers import yale_frames_with_card
     from jaxps.cli import main
 
     args = yale_cross_args(data, "yaleB01")
     strength = np.array([1.0, 0.9, 1.1, 1.05, 0.95])
-    card = np.zeros((192, 168), bool)
-    card[2:14, 2:14] = True
-    frames = []
-    for path, e in zip(args[1:6], strength):
-        frame = cv2.imread(path, cv2.IMREAD_UNCHANGED)
-        lz = jaxps.lights_from_angles(*jaxps.parse_yale_name(path))[0, 2]
-        frame[card] = np.uint8(round(255 * 0.5 * e * float(lz)))
-        frames.append(str(tmp_path / pathlib.Path(path).name))
-        cv2.imwrite(frames[-1], frame)
-    ambient = cv2.imread(args[8], cv2.IMREAD_UNCHANGED)
-    ambient[card] = 0
-    cv2.imwrite(str(tmp_path / "ambient.pgm"), ambient)
-    cv2.imwrite(str(tmp_path / "card.png"), card.astype(np.uint8) * 255)
+    frames, ambient, _, card = yale_frames_with_card(args[1:6], args[8], strength, tmp_path)
     out = tmp_path / "relit"
-    assert main(["relight", *frames, "--yale-names", "--ambient", str(tmp_path / "ambient.pgm"),
+    assert main(["relight", *map(str, frames), "--yale-names", "--ambient", str(ambient),
                  "--method", "lambertian", "--circle-frames", "1",
-                 "--intensity-mask", str(tmp_path / "card.png"), "--out", str(out)]) == 0
+                 "--intensity-mask", str(card), "--out", str(out)]) == 0
     got = json.loads((out / "relight.json").read_text())["intensities"]
-    assert got["method"] == "frontal" and got["target"]["mask"] == str(tmp_path / "card.png")
+    assert got["method"] == "frontal" and got["target"]["mask"] == str(card)
     assert "relight: flash strengths measured on the card: " + " ".join(
         f"{v:.3f}" for v in got["per_frame"]) in capsys.readouterr().out
     np.testing.assert_allclose(got["per_frame"], strength / np.exp(np.mean(np.log(strength))),

@@ -193,7 +193,7 @@ def test_reconstruct_with_an_emulated_target_on_a_real_face(tmp_path, data):
     `--intensity-mask` reads them back, and the normals come much closer to that reference
     than the default's (benchmarks/results/reference_target_yale_registered.json: 2.63
     against 5.33 degrees median on yaleB03)."""
-    import cv2
+    from helpers import yale_frames_with_card
 
     folder = data / "yaleb" / "yaleB03"
     ambient = folder / "yaleB03_P00_Ambient.pgm"
@@ -204,24 +204,12 @@ def test_reconstruct_with_an_emulated_target_on_a_real_face(tmp_path, data):
     ref = jaxps.photometric_stereo(many.images, many.lights, method="semi_calibrated")
     assert bool(ref.info["converged"])
     ref_e = dict(zip(many.names, np.asarray(ref.info["intensities"], np.float64)))
-    target = np.zeros((192, 168), bool)
-    target[2:14, 2:14] = True
-    five, expected = [], []
-    for n in FIVE:
-        name = f"yaleB03_P00{n}.pgm"
-        frame = cv2.imread(str(folder / name), cv2.IMREAD_UNCHANGED)
-        lz = jaxps.lights_from_angles(*jaxps.parse_yale_name(name))[0, 2]
-        frame[target] = np.uint8(round(255 * 0.5 * ref_e[name] * float(lz)))
-        five.append(tmp_path / name)
-        cv2.imwrite(str(five[-1]), frame)
-        expected.append(ref_e[name])
-    dark = cv2.imread(str(ambient), cv2.IMREAD_UNCHANGED)
-    dark[target] = 0
-    cv2.imwrite(str(tmp_path / ambient.name), dark)
-    cv2.imwrite(str(tmp_path / "target.png"), target.astype(np.uint8) * 255)
-    common = ["reconstruct", *map(str, five), "--yale-names", "--ambient",
-              str(tmp_path / ambient.name)]
-    assert main([*common, "--intensity-mask", str(tmp_path / "target.png"),
+    names = [f"yaleB03_P00{n}.pgm" for n in FIVE]
+    expected = [ref_e[name] for name in names]
+    five, dark, target, card = yale_frames_with_card([folder / n for n in names], ambient,
+                                                     expected, tmp_path)
+    common = ["reconstruct", *map(str, five), "--yale-names", "--ambient", str(dark)]
+    assert main([*common, "--intensity-mask", str(card),
                  "--out", str(tmp_path / "target")]) == 0
     assert main([*common, "--out", str(tmp_path / "default")]) == 0
     got = json.loads((tmp_path / "target" / "summary.json").read_text())["intensities"]
