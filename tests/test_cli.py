@@ -26,12 +26,14 @@ def lstsq_normals(images, lights, mask):
 
 
 def test_help_for_every_subcommand(capsys):
-    for argv in (["--help"], ["reconstruct", "--help"], ["demo", "--help"]):
+    for argv in (["--help"], ["reconstruct", "--help"], ["demo", "--help"],
+                 ["calibrate", "--help"]):
         with pytest.raises(SystemExit) as exit_:
             main(argv)
         assert exit_.value.code == 0
     out = capsys.readouterr().out
     assert "reconstruct" in out and "demo" in out and "--yale-names" in out
+    assert "calibrate" in out and "--reference" in out
 
 
 def test_python_dash_m_entry_point():

@@ -25,9 +25,12 @@ ADDED = {
     # Issue 16: the held-out relighting protocol (`score_relighting` and its result).
     # Issue 17: `flash_visibility`, how strongly a light layout shows its flash strengths.
     # Issue 18: `release_batch_outputs`, which frees the batch results kept for reuse.
-    "jaxps": ["RelightScore", "acquisition", "cli", "core", "flash_visibility", "integration",
-              "lights", "ps", "reflectance", "release_batch_outputs", "report",
-              "score_relighting", "shading"],
+    # Not from an issue: `angles_from_lights` and `save_lights`, the inverse of
+    # `lights_from_angles` and the writer of the lights.txt that `load_lights` reads, which
+    # `jaxps calibrate` uses.
+    "jaxps": ["RelightScore", "acquisition", "angles_from_lights", "cli", "core",
+              "flash_visibility", "integration", "lights", "ps", "reflectance",
+              "release_batch_outputs", "report", "save_lights", "score_relighting", "shading"],
     # Issue 18: `bucket_box`, face boxes grown to shape buckets (fewer compiles).
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
                           "bucket_box", "check_file", "check_frames", "drop_flagged",
@@ -74,6 +77,9 @@ ADDED = {
 # result's arrays); only that entry rewritten.
 # Issue 17: `Capture` gained `intensity_fit` (the semi-calibrated fit's report: converged,
 # fallback, steps, objective, flash visibility); only that entry rewritten.
+# Not from an issue: `lights_from_chrome`'s highlight became the centroid weighted by the height
+# above `level` x the maximum, and its default `level` 0.9 became 0.5 (synthetic spheres with
+# known lights, `benchmarks/bench_chrome.py`); only that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

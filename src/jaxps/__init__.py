@@ -49,9 +49,9 @@ _NAMES = {
         "integrate", "normals_from_height",
     ),
     "lights": (
-        "ChromeCalibration", "lights_from_angles", "lights_from_chrome", "load_lights",
-        "near_light_field", "parse_yale_name", "sphere_from_mask", "surface_points",
-        "validate_lights",
+        "ChromeCalibration", "angles_from_lights", "lights_from_angles", "lights_from_chrome",
+        "load_lights", "near_light_field", "parse_yale_name", "save_lights", "sphere_from_mask",
+        "surface_points", "validate_lights",
     ),
     "ps": (
         "INTENSITY_METHODS", "PS_METHODS", "NearResult", "PSResult", "flash_visibility",
@@ -111,6 +111,7 @@ __all__ = [
     "RelightScore",
     "RoughnessFit",
     "Status",
+    "angles_from_lights",
     "angular_error",
     "brdf_features",
     "brdf_photometric_stereo",
@@ -146,6 +147,7 @@ __all__ = [
     "relight",
     "render_lambertian",
     "render_oren_nayar",
+    "save_lights",
     "score_relighting",
     "shift_frames",
     "sphere_from_mask",

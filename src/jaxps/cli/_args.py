@@ -14,8 +14,8 @@ INTENSITY_METHODS = ("none", "mean", "frontal", "semi_calibrated")
 PS_METHODS = ("l2", "l1", "barsky", "irls", "sbl", "semi_calibrated", "oren_nayar")
 INTEGRATION_METHODS = ("fc", "dct", "lsq", "bilateral", "auto")
 
-__all__ = ["add_intensity_args", "add_light_args", "add_register_arg", "demo_parser",
-           "reconstruct_parser", "relight_parser", "report_parser"]
+__all__ = ["add_intensity_args", "add_light_args", "add_register_arg", "calibrate_parser",
+           "demo_parser", "reconstruct_parser", "relight_parser", "report_parser"]
 
 
 def add_register_arg(p) -> None:
@@ -159,3 +159,28 @@ def relight_parser(sub) -> None:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.set_defaults(module="_relight")
+
+
+def calibrate_parser(sub) -> None:
+    p = sub.add_parser(
+        "calibrate",
+        help="a mirror sphere's frames -> lights.txt for 'jaxps reconstruct --lights'",
+        description="Find each light's highlight on a mirror (chrome) sphere, one frame per "
+        "light in firing order, and write its direction (the reflection of the view) to "
+        "OUT/lights.txt, with calibration.json (sphere, highlights, angles) and "
+        "calibration.png. A frame without a highlight inside the mask is an error.",
+    )
+    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
+    p.add_argument("--mask", required=True,
+                   help="the sphere's silhouette (image, non-zero inside; an anti-aliased edge "
+                   "refines the centre and radius)")
+    p.add_argument("--ambient", help="ambient-only frame to subtract; 'auto': the file named "
+                   "*ambient* in the folder of frames")
+    p.add_argument("--level", type=float, default=0.5,
+                   help="a highlight is the pixels at or above LEVEL x the frame's brightest on "
+                   "the sphere, weighted by their height above that level (default 0.5)")
+    p.add_argument("--reference", metavar="LIGHTS",
+                   help="a lights.txt to compare with (e.g. the previous calibration): the "
+                   "angle to each of its lights is printed and kept in calibration.json")
+    p.add_argument("--out", required=True, help="output folder (created if missing)")
+    p.set_defaults(module="_calibrate")

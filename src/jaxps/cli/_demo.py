@@ -9,6 +9,7 @@ import numpy as np
 from .. import synthetic
 from ..acquisition import read_mask
 from ..evaluate import angular_error
+from ..lights import save_lights
 from ..report._writers import read_normal_map, write_json
 from ._reconstruct import reconstruct
 
@@ -33,8 +34,8 @@ def run(args) -> int:
         paths.append(path)
     amb_path = os.path.join(frames_dir, "ambient.png")
     cv2.imwrite(amb_path, np.full(img.shape, round(ambient * 65535), np.uint16))
-    np.savetxt(os.path.join(frames_dir, "lights.txt"), lights, header=str(len(lights)),
-               comments="")
+    save_lights(os.path.join(frames_dir, "lights.txt"), lights,
+                comment="jaxps demo: synthetic.scanner_lights(20)")
     mask_path = os.path.join(frames_dir, "mask.png")
     cv2.imwrite(mask_path, np.asarray(scene.mask).astype(np.uint8) * 255)
 

@@ -21,8 +21,8 @@ def build_parser() -> argparse.ArgumentParser:
     version = importlib.metadata.version("jaxps")
     parser.add_argument("--version", action="version", version=f"jaxps {version}")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for add in (_args.reconstruct_parser, _args.demo_parser, _args.report_parser,
-                _args.relight_parser):
+    for add in (_args.reconstruct_parser, _args.calibrate_parser, _args.demo_parser,
+                _args.report_parser, _args.relight_parser):
         add(sub)
     return parser
 

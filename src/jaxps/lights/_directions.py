@@ -13,9 +13,11 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 __all__ = [
+    "angles_from_lights",
     "lights_from_angles",
     "load_lights",
     "parse_yale_name",
+    "save_lights",
     "validate_lights",
 ]
 
@@ -50,6 +52,34 @@ def lights_from_angles(
         raise ValueError("azimuth_deg and elevation_deg must be finite")
     lights = np.stack([-np.cos(e) * np.sin(a), np.sin(e), np.cos(e) * np.cos(a)], axis=-1)
     return lights.astype(np.float32)
+
+
+def angles_from_lights(
+    lights: Float[ArrayLike, "K 3"],
+) -> tuple[Float[np.ndarray, " K"], Float[np.ndarray, " K"]]:
+    """Yale B azimuth and elevation in degrees of unit light vectors: the inverse of
+    `lights_from_angles`.
+
+    $A = \\operatorname{atan2}(-l_x, l_z)$, $E = \\arcsin l_y$ (rows are normalised first).
+
+    **Arguments:**
+    - `lights`: `(K, 3)` (or one `(3,)`) directions toward the lights, camera frame.
+
+    **Returns:** `(azimuth_deg, elevation_deg)`, two `(K,)` float64 arrays.
+
+    **Raises:** `ValueError` if `lights` is not `(K, 3)`, or has a zero or non-finite row.
+    """
+    lights = np.asarray(lights, np.float64)
+    if lights.shape == (3,):
+        lights = lights[None]
+    if lights.ndim != 2 or lights.shape[1] != 3:
+        raise ValueError(f"lights must have shape (K, 3), got {lights.shape}")
+    norms = np.linalg.norm(lights, axis=1)
+    bad = np.flatnonzero(~(np.isfinite(norms) & (norms > 1e-8)))
+    if bad.size:
+        raise ValueError(f"lights {bad.tolist()} are zero or not finite")
+    lx, ly, lz = (lights / norms[:, None]).T
+    return np.degrees(np.arctan2(-lx, lz)), np.degrees(np.arcsin(np.clip(ly, -1, 1)))
 
 
 def parse_yale_name(name: str | os.PathLike) -> tuple[float, float] | None:
@@ -99,6 +129,21 @@ def load_lights(path: str | os.PathLike) -> Float[np.ndarray, "K 3"]:
         return validate_lights(data)
     except ValueError as err:
         raise ValueError(f"lights file {path}: {err}") from None
+
+
+def save_lights(path: str | os.PathLike, lights: Float[ArrayLike, "K 3"], *,
+                comment: str | None = None) -> None:
+    """Write a ``lights.txt`` that `load_lights` reads back: `comment` (each line after
+    ``#``), the count, then ``x y z`` per light, unit-normalised, to 9 decimals.
+
+    **Raises:** `ValueError` if `lights` fails `validate_lights` (nothing is written then).
+    """
+    lights = validate_lights(lights).astype(np.float64)
+    lights = lights / np.linalg.norm(lights, axis=1, keepdims=True) + 0.0  # + 0.0: no "-0.0"
+    head = "".join(f"# {line}\n" for line in (comment or "").splitlines())
+    rows = "".join(f"{x:.9f} {y:.9f} {z:.9f}\n" for x, y, z in lights)
+    with open(path, "w") as f:
+        f.write(f"{head}{len(lights)}\n{rows}")
 
 
 def validate_lights(lights: Float[ArrayLike, "K 3"]) -> Float[np.ndarray, "K 3"]:

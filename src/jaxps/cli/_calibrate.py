@@ -1,0 +1,209 @@
+"""`jaxps calibrate`: a scanner's light directions from frames of a mirror (chrome) sphere.
+
+The file-facing side of `jaxps.lights_from_chrome`: read the frames (one per light, in the
+order the scanner fires them) and the sphere's mask, find each light's highlight, and write the
+`lights.txt` that `jaxps reconstruct --lights` reads, with `calibration.json` (the sphere, each
+highlight and light, and the angles to a reference set) and `calibration.png` (the highlights
+on the sphere, the lights as seen from the camera) beside it.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+from ..acquisition import list_frames, load_stack, read_image
+from ..acquisition._capture import _folder_ambient, _is_auto
+from ..acquisition._stack import _subtract_ambient
+from ..lights import (
+    angles_from_lights,
+    lights_from_chrome,
+    load_lights,
+    save_lights,
+    validate_lights,
+)
+from ..report._writers import write_json
+
+__all__ = ["calibrate", "run"]
+
+
+def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
+              reference=None) -> dict:
+    """Calibrate the lights from frames of a mirror sphere; write `lights.txt`,
+    `calibration.json` and `calibration.png` to `out`; return the JSON's contents.
+
+    **Arguments:**
+    - `frames`: a folder of frames (natural order, names with "mask" or "ambient" skipped) or
+      the frame files, one per light.
+    - `mask`: the sphere's silhouette, an image file of the frames' size (non-zero inside; an
+      anti-aliased edge refines the centre and radius).
+    - `ambient`: an ambient-only frame to subtract, or `"auto"` (the folder's `*ambient*`).
+    - `level`: a highlight is the pixels at or above `level` x the frame's brightest on the
+      sphere (`lights_from_chrome`).
+    - `reference`: a `lights.txt` to compare with (e.g. the previous calibration): the angle
+      between each calibrated light and its reference is reported.
+
+    **Raises:** `ValueError` naming the frames in which no highlight was found inside the
+    sphere's outline (nothing is written then), or when the lights do not span 3-D;
+    `FileNotFoundError` for a missing file.
+    """
+    if isinstance(frames, (str, os.PathLike)):
+        paths = list_frames(frames)
+        ambient = _folder_ambient(frames, ambient)
+    else:
+        paths = [os.fspath(p) for p in frames]
+        if not paths:
+            raise ValueError("frames: empty list of files")
+        if _is_auto(ambient):
+            raise ValueError("ambient='auto' takes the ambient frame from a folder of frames; "
+                             "with a list of files, give the ambient file")
+    for what, path in (("mask", mask), ("ambient frame", ambient), ("reference", reference)):
+        if path is not None and not os.path.isfile(path):
+            raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
+    names = [os.path.basename(p) for p in paths]
+    images, _ = load_stack(paths)
+    if ambient is not None:
+        amb = read_image(ambient)
+        if amb.shape != images.shape[1:]:
+            raise ValueError(f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, "
+                             f"frames have {images.shape[1:]}")
+        images = _subtract_ambient(images, amb, out=images)
+    silhouette = read_image(mask, linearize="none")
+    if silhouette.ndim == 3:
+        silhouette = silhouette.max(axis=-1)
+    if silhouette.shape != images.shape[1:3]:
+        raise ValueError(f"mask {os.fspath(mask)} has shape {silhouette.shape}, frames have "
+                         f"{images.shape[1:3]}")
+
+    cal = lights_from_chrome(images, silhouette, level=level)
+    missing = [n for n, ok in zip(names, cal.ok) if not ok]
+    if missing:
+        raise ValueError(f"no highlight found inside the sphere's outline in frame(s) "
+                         f"{', '.join(missing)}: is the light off, or its reflection outside "
+                         "the mask?")
+    try:
+        lights = validate_lights(cal.lights)
+    except ValueError as err:
+        raise ValueError(f"the calibrated lights cannot be used: {err}") from None
+    azimuth, elevation = angles_from_lights(lights)
+
+    (r0, c0), radius = cal.centre, cal.radius
+    report = {
+        "frames": paths,
+        "mask": os.fspath(mask),
+        "ambient": None if ambient is None else os.fspath(ambient),
+        "level": level,
+        "sphere": {"centre_row": r0, "centre_col": c0, "radius_px": radius},
+        "lights": [
+            {"frame": name, "direction": light.tolist(), "azimuth_deg": float(a),
+             "elevation_deg": float(e), "highlight_row": float(h[0]),
+             "highlight_col": float(h[1])}
+            for name, light, a, e, h in zip(names, lights, azimuth, elevation, cal.highlights)
+        ],
+    }
+    ref = None
+    if reference is not None:
+        ref = load_lights(reference)
+        if len(ref) != len(lights):
+            raise ValueError(f"reference {os.fspath(reference)} has {len(ref)} lights, "
+                             f"the frames {len(lights)}")
+        cos = np.clip(np.sum(lights.astype(np.float64) * ref, axis=1), -1, 1)
+        angle = np.degrees(np.arccos(cos))
+        report["reference"] = {"path": os.fspath(reference), "angle_deg": angle.tolist(),
+                               "max_deg": float(angle.max()), "mean_deg": float(angle.mean())}
+
+    os.makedirs(out, exist_ok=True)
+    save_lights(os.path.join(out, "lights.txt"), lights, comment=(
+        f"jaxps calibrate: mirror sphere at row {r0:.2f}, col {c0:.2f}, radius {radius:.2f} px\n"
+        f"frames: {' '.join(names)}"))
+    images_grey = images.mean(axis=-1) if images.ndim == 4 else images
+    plot_calibration(os.path.join(out, "calibration.png"), images_grey.max(axis=0), cal, names,
+                     lights, ref)
+    report["outputs"] = ["lights.txt", "calibration.json", "calibration.png"]
+    write_json(os.path.join(out, "calibration.json"), report)
+    return report
+
+
+def plot_calibration(path, image, cal, names, lights, reference=None) -> None:
+    """Three panels: the brightest value of every frame over the sphere with its fitted
+    outline; the highlights up close, numbered by frame; and the lights as seen from the camera
+    ($l_x$, $l_y$; circles at 30, 60 and 90 degrees from the view axis), with the reference's
+    beside them."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    (r0, c0), radius = cal.centre, cal.radius
+    fig, (ax, zx, bx) = plt.subplots(1, 3, figsize=(15, 5))
+    scale = np.percentile(image, 99.5)
+    shown = np.clip(image / (scale if scale > 0 else 1.0), 0, 1) ** (1 / 2.2)
+    hl = cal.highlights
+    margin = 0.1 * radius
+    zoom = (hl[:, 1].min() - margin, hl[:, 1].max() + margin,  # left, right, top, bottom
+            hl[:, 0].min() - margin, hl[:, 0].max() + margin)
+    for axis in (ax, zx):
+        axis.imshow(shown, cmap="gray", vmin=0, vmax=1)
+        axis.add_patch(plt.Circle((c0, r0), radius, fill=False, color="tab:orange", lw=1))
+        axis.set_axis_off()
+    pad = 1.1 * radius
+    ax.set_xlim(c0 - pad, c0 + pad)
+    ax.set_ylim(r0 + pad, r0 - pad)
+    ax.add_patch(plt.Rectangle((zoom[0], zoom[2]), zoom[1] - zoom[0], zoom[3] - zoom[2],
+                               fill=False, color="tab:red", lw=0.8))
+    ax.set_title(f"sphere (brightest of {len(names)} frames) and its outline")
+    zx.set_xlim(zoom[0], zoom[1])
+    zx.set_ylim(zoom[3], zoom[2])
+    for k, (row, col) in enumerate(hl):
+        zx.plot(col, row, "+", color="tab:red", ms=12)
+        zx.annotate(str(k), (col, row), xytext=(5, 5), textcoords="offset points",
+                    color="tab:red", fontsize=9)
+    zx.set_title("highlights, numbered by frame")
+
+    t = np.linspace(0, 2 * np.pi, 200)
+    for zenith in (30, 60, 90):
+        s = np.sin(np.radians(zenith))
+        bx.plot(s * np.cos(t), s * np.sin(t), color="0.85", lw=0.8)
+        bx.annotate(f"{zenith} deg", (s * 0.71, -s * 0.71), color="0.6", fontsize=7)
+    if reference is not None:
+        for a, b in zip(lights, reference):
+            bx.plot([a[0], b[0]], [a[1], b[1]], color="0.5", lw=0.8)
+        bx.plot(reference[:, 0], reference[:, 1], "o", mfc="none", color="0.4",
+                label="reference")
+    bx.plot(lights[:, 0], lights[:, 1], "o", color="tab:red", ms=5, label="calibrated")
+    for k, light in enumerate(lights):
+        bx.annotate(str(k), light[:2], xytext=(4, 4), textcoords="offset points", fontsize=8)
+    bx.set_aspect("equal")
+    bx.set_xlim(-1.05, 1.05)
+    bx.set_ylim(-1.05, 1.05)
+    bx.set_xlabel("$l_x$ (image right)")
+    bx.set_ylabel("$l_y$ (image up)")
+    bx.set_title("lights seen from the camera")
+    bx.legend(loc="lower left", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+
+
+def run(args) -> int:
+    one_folder = len(args.frames) == 1 and os.path.isdir(args.frames[0])
+    report = calibrate(args.frames[0] if one_folder else args.frames, args.out, mask=args.mask,
+                       ambient=args.ambient, level=args.level, reference=args.reference)
+    sphere = report["sphere"]
+    print(f"calibrated {len(report['lights'])} lights on the mirror sphere (centre row "
+          f"{sphere['centre_row']:.1f}, col {sphere['centre_col']:.1f}, radius "
+          f"{sphere['radius_px']:.1f} px)")
+    ref = report.get("reference")
+    for k, light in enumerate(report["lights"]):
+        line = (f"  {light['frame']}: azimuth {light['azimuth_deg']:+.2f}, elevation "
+                f"{light['elevation_deg']:+.2f} deg")
+        if ref is not None:
+            line += f"; {ref['angle_deg'][k]:.2f} deg from the reference"
+        print(line)
+    if ref is not None:
+        worst = int(np.argmax(ref["angle_deg"]))
+        print(f"against {ref['path']}: mean {ref['mean_deg']:.2f} deg, largest "
+              f"{ref['max_deg']:.2f} deg ({report['lights'][worst]['frame']})")
+    print(f"outputs: {args.out}/" + " ".join(report["outputs"]))
+    return 0
