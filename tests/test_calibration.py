@@ -166,6 +166,16 @@ def test_calibrate_command_then_reconstruct_with_its_lights(tmp_path, capsys):
                                atol=1e-3)
     assert [light["frame"] for light in report["lights"]] == [f"sphere_{k}.png" for k in range(5)]
     assert f"largest {max(_angles(calibrated, design)):.2f} deg" in printed
+    # A daily check of the rig: status 1, and the lights that moved named, past --tolerance.
+    moved = _angles(calibrated, design)
+    tolerance = float(np.sort(moved)[2])  # two of the five lights moved further than this
+    argv = ["calibrate", str(tmp_path / "sphere"), "--mask", str(mask), "--ambient", "auto",
+            "--reference", str(tmp_path / "design.txt"), "--out", str(tmp_path / "check")]
+    assert main([*argv, "--tolerance", f"{tolerance + 1e-3}"]) == 1
+    err = capsys.readouterr().err
+    assert all((f"sphere_{k}.png" in err) == (moved[k] > tolerance + 1e-3) for k in range(5))
+    assert (tmp_path / "check" / "lights.txt").is_file()
+    assert main([*argv, "--tolerance", "10"]) == 0
     assert (out / "calibration.png").stat().st_size > 20_000
 
     scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(128), truth)
@@ -229,3 +239,6 @@ def test_calibrate_command_errors_name_the_problem(tmp_path, capsys):
     assert "ambient='auto'" in capsys.readouterr().err
     assert main(["calibrate", frame, frame, frame, "--mask", str(mask), "--out", str(out)]) == 2
     assert "span 3-D" in capsys.readouterr().err  # one light three times
+    assert main(["calibrate", str(tmp_path / "good"), "--mask", str(mask), "--tolerance", "1",
+                 "--out", str(out)]) == 2
+    assert "--tolerance" in capsys.readouterr().err

@@ -182,5 +182,8 @@ def calibrate_parser(sub) -> None:
     p.add_argument("--reference", metavar="LIGHTS",
                    help="a lights.txt to compare with (e.g. the previous calibration): the "
                    "angle to each of its lights is printed and kept in calibration.json")
+    p.add_argument("--tolerance", type=float, metavar="DEG",
+                   help="with --reference: exit with status 1 (outputs still written) when a "
+                   "light moved more than DEG degrees, naming it")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.set_defaults(module="_calibrate")

@@ -10,6 +10,7 @@ on the sphere, the lights as seen from the camera) beside it.
 from __future__ import annotations
 
 import os
+import sys
 
 import numpy as np
 
@@ -187,6 +188,11 @@ def plot_calibration(path, image, cal, names, lights, reference=None) -> None:
 
 
 def run(args) -> int:
+    """Returns 0, or 1 when a light moved more than `--tolerance` from `--reference` (the
+    outputs are written either way), so that a daily check of the rig can fail by itself."""
+    if args.tolerance is not None and (args.reference is None or not args.tolerance >= 0):
+        raise ValueError("--tolerance is the largest angle (degrees, >= 0) a light may move "
+                         "from --reference: give both")
     one_folder = len(args.frames) == 1 and os.path.isdir(args.frames[0])
     report = calibrate(args.frames[0] if one_folder else args.frames, args.out, mask=args.mask,
                        ambient=args.ambient, level=args.level, reference=args.reference)
@@ -206,4 +212,11 @@ def run(args) -> int:
         print(f"against {ref['path']}: mean {ref['mean_deg']:.2f} deg, largest "
               f"{ref['max_deg']:.2f} deg ({report['lights'][worst]['frame']})")
     print(f"outputs: {args.out}/" + " ".join(report["outputs"]))
+    if args.tolerance is not None and ref["max_deg"] > args.tolerance:
+        moved = [f"{light['frame']} ({angle:.2f} deg)"
+                 for light, angle in zip(report["lights"], ref["angle_deg"])
+                 if angle > args.tolerance]
+        print(f"jaxps calibrate: moved more than {args.tolerance:g} deg from the reference: "
+              + ", ".join(moved), file=sys.stderr)
+        return 1
     return 0
