@@ -88,6 +88,40 @@ def target_capture(tmp_path, strength, clip=None):
     return paths, lights, face, target, subject
 
 
+def near_target_capture(folder, strength, board=False, distance=1000.0, pixel_mm=4.0):
+    """16-bit frames of a scanner whose five lamps stand `distance` mm from the subject's
+    place, along `scanner_lights(20)`: a flat subject turned 10 degrees (albedo 0.7; with
+    `board`, a board facing the camera instead) around the origin, and a matte target facing
+    the camera (albedo 0.5) in the top-left corner, 100 mm behind, lit by flashes of
+    `strength`. Near lights (`jaxps.near_light_field`, 1 at the origin) light the two from
+    different distances. Returns the paths, the lights, the subject's (or board's) mask and
+    the target's mask."""
+    import cv2
+
+    folder.mkdir(parents=True, exist_ok=True)
+    lights = np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
+    h, w = 48, 64
+    subject, target = np.zeros((h, w), bool), np.zeros((h, w), bool)
+    subject[12:40, 18:50] = True
+    target[:8, :10] = True
+    turn = 0.0 if board else np.radians(10.0)
+    normal = np.array([np.sin(turn), 0.0, np.cos(turn)])
+    points = np.asarray(jaxps.surface_points(np.zeros((h, w), np.float32), pixel_size=pixel_mm),
+                        np.float64)
+    points[..., 2] = np.where(target, -100.0, -np.tan(turn) * points[..., 0])
+    directions, falloff = (np.asarray(a, np.float64) for a in jaxps.near_light_field(
+        distance * lights, points))
+    normals = np.where(target[..., None], [0.0, 0.0, 1.0], normal)
+    albedo = np.where(target, 0.5, np.where(subject, 0.7, 0.0))
+    frames = (np.maximum(np.einsum("khwc,hwc->khw", directions, normals), 0) * falloff
+              * albedo * np.asarray(strength, np.float64)[:, None, None])
+    paths = []
+    for k, f in enumerate(frames):
+        paths.append(folder / f"f{k}.png")
+        cv2.imwrite(str(paths[-1]), np.round(np.clip(f, 0, 1) * 65535).astype(np.uint16))
+    return paths, lights, subject, target
+
+
 def mask_png(tmp_path, mask):
     """`mask` written as `tmp_path/target_mask.png` (255 inside); its path."""
     import cv2

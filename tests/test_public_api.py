@@ -32,9 +32,11 @@ ADDED = {
               "flash_visibility", "integration", "lights", "ps", "reflectance",
               "release_batch_outputs", "report", "save_lights", "score_relighting", "shading"],
     # Issue 18: `bucket_box`, face boxes grown to shape buckets (fewer compiles).
+    # Issue 17: `target_ratios`, a reference target's per-light calibration for near lights.
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
                           "bucket_box", "check_file", "check_frames", "drop_flagged",
-                          "estimate_shifts", "load_psm", "register_frames", "shift_frames"],
+                          "estimate_shifts", "load_psm", "register_frames", "shift_frames",
+                          "target_ratios"],
     # Issue 15: a reconstruction as a textured trimesh mesh.
     "jaxps.report": ["to_trimesh"],
     # Issue 18: the installed `jaxps` script's entry point (`main` with `gc.freeze`).
@@ -80,6 +82,9 @@ ADDED = {
 # Not from an issue: `lights_from_chrome`'s highlight became the centroid weighted by the height
 # above `level` x the maximum, and its default `level` 0.9 became 0.5 (synthetic spheres with
 # known lights, `benchmarks/bench_chrome.py`); only that entry rewritten.
+# Issue 17: `load_capture` and `jaxps.cli.reconstruct` gained `intensity_ratios` (a reference
+# target's flashes carried to the subject's place under near lights); those two entries
+# rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

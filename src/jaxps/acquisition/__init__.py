@@ -10,7 +10,7 @@ colour-science. It runs once per capture and hands numpy arrays to the jitted co
 colour-science load on first use.
 """
 
-from ._capture import Capture, load_capture
+from ._capture import Capture, load_capture, target_ratios
 from ._face import bucket_box, crop, detect_face
 from ._files import FRAME_EXTENSIONS, list_frames, load_stack, read_image, read_mask
 from ._psm import load_psm
@@ -50,4 +50,5 @@ __all__ = [
     "register_frames",
     "shift_frames",
     "subtract_ambient",
+    "target_ratios",
 ]

@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
+from jaxtyping import Bool, Float
 
 from ..core._host import aligned, aligned_empty
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
@@ -25,7 +26,7 @@ from ._quality import screen_capture
 from ._register import _shift, estimate_shifts
 from ._stack import _subtract_ambient, mask_from_intensity
 
-__all__ = ["Capture", "load_capture"]
+__all__ = ["Capture", "load_capture", "target_ratios"]
 
 # Motion that `load_capture(register=True)` undoes, in pixels. Below MIN_SHIFT the frames are left
 # as read: on still scenes the estimate reads shading changes as motion, up to 0.12 px on the psm
@@ -89,6 +90,7 @@ def load_capture(
     register: bool = True,
     intensity_mask: PathLike | np.ndarray | None = None,
     intensity_normal: Sequence[float] | None = None,
+    intensity_ratios: PathLike | Sequence[float] | None = None,
 ) -> Capture:
     """Load a capture: frames, lights, ambient subtraction, face crop, mask, intensities.
 
@@ -133,6 +135,12 @@ def load_capture(
       cropped), instead of over `mask`, leaving out its pixels saturated in any frame. With `intensity_normal`, the target's normal in the
       camera frame (default: facing the camera), "frontal" needs no assumption about the
       subject's pose (docs/captures.md, "A reference target in view").
+    - `intensity_ratios`: with `intensity_mask`, `(K,)` factors (or a text file of them, one
+      per line, `#` comments) by which the flash at the subject's place exceeds the flash at
+      the target, one per frame as given (before any is dropped): the target's estimates are
+      multiplied by them. Near lights (a scanner's flashes at about a metre) light the target
+      and the face from different distances, a fixed error per lamp; `target_ratios` measures
+      it once from frames of a flat board at the subject's place (`jaxps calibrate --board`).
 
     **Raises:** `FileNotFoundError`/`ValueError` naming the offending file or argument.
     """
@@ -144,6 +152,9 @@ def load_capture(
     if intensity_normal is not None and (intensity_mask is None or intensities != "frontal"):
         raise ValueError("intensity_normal is the reference target's normal: it needs "
                          "intensity_mask and intensities='frontal'")
+    if intensity_ratios is not None and intensity_mask is None:
+        raise ValueError("intensity_ratios scale the flash strengths measured on a reference "
+                         "target: they need intensity_mask")
     if isinstance(frames, (str, os.PathLike)):
         paths = list_frames(frames)
         ambient = _folder_ambient(frames, ambient)
@@ -156,11 +167,12 @@ def load_capture(
             raise ValueError("frames: empty list of files")
     # Named before any frame is read: a missing file otherwise reads as a missing frame.
     for what, path in (("ambient frame", ambient), ("mask", mask),
-                       ("intensity mask", intensity_mask)):
+                       ("intensity mask", intensity_mask), ("intensity ratios", intensity_ratios)):
         if (isinstance(path, (str, os.PathLike)) and not _is_auto(path)
                 and not os.path.isfile(path)):
             raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
     names = tuple(os.path.basename(p) for p in paths)
+    ratios = None if intensity_ratios is None else _ratios(intensity_ratios, len(paths))
     images, saturated = load_stack(paths, linearize=linearize)  # names a missing frame
     if len(paths) < 3:
         raise ValueError(f"frames: photometric stereo needs at least 3 frames, got {len(paths)} "
@@ -234,6 +246,9 @@ def load_capture(
         except ValueError as err:  # asked for by name: an error, not a silent fallback
             raise ValueError(f"intensity_mask: the reference target's intensities: {err}") \
                 from err
+        if ratios is not None:  # the frames kept, in order
+            e = e * ratios[[given.index(n) for n in names]]
+            e = (e / np.exp(np.mean(np.log(e)))).astype(np.float32)
 
     shifts, border = None, 0
     if register:
@@ -272,6 +287,78 @@ def load_capture(
                    saturated, names, box, (1 / e).astype(np.float32),
                    tuple(n for n in given if n not in names), e, method, shifts, border > 0,
                    fit)
+
+
+def target_ratios(
+    images: Float[np.ndarray, "K H W *C"],
+    lights: Float[np.ndarray, "K 3"],
+    target: Bool[np.ndarray, "H W"],
+    subject: Bool[np.ndarray, "H W"],
+    *,
+    target_normal: Sequence[float] | None = None,
+    subject_normal: Sequence[float] | None = None,
+    saturated: Bool[np.ndarray, "K H W"] | None = None,
+) -> Float[np.ndarray, " K"]:
+    """Per light, the flash at the subject's place over the flash at a reference target:
+    the one-time calibration that `load_capture(intensity_ratios=...)` applies.
+
+    A target fixed to the scanner measures each frame's flash strength (`intensity_mask`).
+    With near lights it is lit from another distance and angle than the face, by a factor
+    that differs from lamp to lamp but not from shot to shot. Image a flat, matte board at
+    the subject's place once per light, with the target in view; then the ratios are the
+    "frontal" estimate over the board (normal `subject_normal`, default facing the camera)
+    over the same estimate over the target (normal `target_normal`), geometric mean 1.
+
+    **Arguments:**
+    - `images`: `(K, H, W)` or `(K, H, W, C)` frames of the board, ambient subtracted.
+    - `lights`: `(K, 3)` light directions (as for the captures, e.g. `jaxps calibrate`'s).
+    - `target`, `subject`: `(H, W)` bool, the reference target and the board.
+    - `saturated`: `(K, H, W)` bool, samples clipped in the raw frames, left out.
+
+    **Returns:** `(K,)` float32, geometric mean 1.
+
+    **Raises:** `ValueError` naming `target` or `subject` when a region is empty, black or
+    saturated throughout, or faces away from a light.
+    """
+    images = np.asarray(images, np.float32)
+    grey = images if images.ndim == 3 else images.mean(axis=-1)
+    clipped = (np.zeros(grey.shape[1:], bool) if saturated is None
+               else np.asarray(saturated, bool).any(axis=0))
+    estimates = []
+    for what, region, normal in (("subject", subject, subject_normal),
+                                 ("target", target, target_normal)):
+        region = np.asarray(region, bool)
+        if region.shape != grey.shape[1:]:
+            raise ValueError(f"{what} has shape {region.shape}, frames have {grey.shape[1:]}")
+        if not (region & ~clipped).any():
+            raise ValueError(f"{what}: no pixel of it is unsaturated in every frame")
+        try:
+            estimates.append(np.asarray(intensity_estimate(
+                grey, lights, mask=region & ~clipped, method="frontal", normal=normal),
+                np.float64))
+        except ValueError as err:
+            raise ValueError(f"{what}: {err}") from err
+    ratios = estimates[0] / estimates[1]
+    return (ratios / np.exp(np.mean(np.log(ratios)))).astype(np.float32)
+
+
+def _ratios(ratios, k):
+    """`load_capture`'s `intensity_ratios` as `(k,)` float64: from a text file (one number per
+    line, `#` comments) or an array; `ValueError` naming them unless k finite positives."""
+    where = ""
+    if isinstance(ratios, (str, os.PathLike)):
+        where = f" ({os.fspath(ratios)})"
+        try:
+            ratios = np.loadtxt(ratios, comments="#", ndmin=1)
+        except ValueError as err:
+            raise ValueError(f"intensity_ratios{where}: not a list of numbers: {err}") from None
+    ratios = np.asarray(ratios, np.float64)
+    if ratios.shape != (k,):
+        raise ValueError(f"intensity_ratios{where}: {k} frames need {k} ratios, got shape "
+                         f"{ratios.shape}")
+    if not (np.all(np.isfinite(ratios)) and np.all(ratios > 0)):
+        raise ValueError(f"intensity_ratios{where}: every ratio must be finite and positive")
+    return ratios
 
 
 def _intensities(images, lights, region, method, normal=None, saturated=None):

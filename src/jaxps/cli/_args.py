@@ -42,6 +42,10 @@ def add_intensity_args(p) -> None:
     p.add_argument("--intensity-normal", type=float, nargs=3, metavar=("X", "Y", "Z"),
                    help="the reference target's normal in the camera frame (default 0 0 1: "
                    "facing the camera)")
+    p.add_argument("--intensity-ratios", metavar="FILE",
+                   help="with --intensity-mask: per frame, the flash at the subject's place over "
+                   "the flash at the target (one number per line), which near lights make differ "
+                   "from lamp to lamp; 'jaxps calibrate --board' writes it")
 
 
 def add_light_args(p) -> None:
@@ -182,6 +186,19 @@ def calibrate_parser(sub) -> None:
     p.add_argument("--reference", metavar="LIGHTS",
                    help="a lights.txt to compare with (e.g. the previous calibration): the "
                    "angle to each of its lights is printed and kept in calibration.json")
+    p.add_argument("--board", nargs="+", metavar="FRAMES",
+                   help="a reference target's one-time calibration for near lights: frames of a "
+                   "flat, matte board at the subject's place, one per light in the sphere's "
+                   "order, with the target in view; writes OUT/intensity_ratios.txt for "
+                   "'jaxps reconstruct --intensity-ratios' (needs --board-mask and "
+                   "--intensity-mask)")
+    p.add_argument("--board-mask", metavar="MASK", help="the board's mask (with --board)")
+    p.add_argument("--board-normal", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="the board's normal (default 0 0 1: facing the camera)")
+    p.add_argument("--intensity-mask", metavar="MASK",
+                   help="the reference target's mask (full frame), as for 'jaxps reconstruct'")
+    p.add_argument("--intensity-normal", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="the reference target's normal (default 0 0 1: facing the camera)")
     p.add_argument("--tolerance", type=float, metavar="DEG",
                    help="with --reference: exit with status 1 (outputs still written) when a "
                    "light moved more than DEG degrees, naming it")

@@ -14,7 +14,7 @@ import sys
 
 import numpy as np
 
-from ..acquisition import list_frames, load_stack, read_image
+from ..acquisition import list_frames, load_stack, read_image, read_mask, target_ratios
 from ..acquisition._capture import _folder_ambient, _is_auto
 from ..acquisition._stack import _subtract_ambient
 from ..lights import (
@@ -30,9 +30,11 @@ __all__ = ["calibrate", "run"]
 
 
 def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
-              reference=None) -> dict:
+              reference=None, board=None, board_mask=None, intensity_mask=None,
+              intensity_normal=None, board_normal=None) -> dict:
     """Calibrate the lights from frames of a mirror sphere; write `lights.txt`,
-    `calibration.json` and `calibration.png` to `out`; return the JSON's contents.
+    `calibration.json` and `calibration.png` to `out`; return the JSON's contents. With
+    `board`, also the reference target's `intensity_ratios.txt`.
 
     **Arguments:**
     - `frames`: a folder of frames (natural order, names with "mask" or "ambient" skipped) or
@@ -44,11 +46,19 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
       sphere (`lights_from_chrome`).
     - `reference`: a `lights.txt` to compare with (e.g. the previous calibration): the angle
       between each calibrated light and its reference is reported.
+    - `board`, `board_mask`, `intensity_mask`: frames (a folder or files, one per light in the
+      sphere's order) of a flat, matte board at the subject's place, its mask, and the mask of
+      the reference target in view (`load_capture(intensity_mask=...)`): the per-light
+      `acquisition.target_ratios` that a target needs under near lights are written to
+      `intensity_ratios.txt` (`--intensity-ratios`). `intensity_normal`, `board_normal`: their
+      normals (default facing the camera). `ambient`: a file is subtracted from the board's
+      frames too; `"auto"` takes each folder's own.
 
     **Raises:** `ValueError` naming the frames in which no highlight was found inside the
     sphere's outline (nothing is written then), or when the lights do not span 3-D;
     `FileNotFoundError` for a missing file.
     """
+    board_ambient = ambient  # "auto": the board's folder has its own
     if isinstance(frames, (str, os.PathLike)):
         paths = list_frames(frames)
         ambient = _folder_ambient(frames, ambient)
@@ -59,17 +69,16 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
         if _is_auto(ambient):
             raise ValueError("ambient='auto' takes the ambient frame from a folder of frames; "
                              "with a list of files, give the ambient file")
-    for what, path in (("mask", mask), ("ambient frame", ambient), ("reference", reference)):
-        if path is not None and not os.path.isfile(path):
+    given = (board is not None, board_mask is not None, intensity_mask is not None)
+    if any(given) and not all(given):
+        raise ValueError("board: the target's ratios need the board's frames, the board's mask "
+                         "and the target's mask (--board, --board-mask, --intensity-mask)")
+    for what, path in (("mask", mask), ("ambient frame", ambient), ("reference", reference),
+                       ("board mask", board_mask), ("intensity mask", intensity_mask)):
+        if path is not None and not _is_auto(path) and not os.path.isfile(path):
             raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
     names = [os.path.basename(p) for p in paths]
-    images, _ = load_stack(paths)
-    if ambient is not None:
-        amb = read_image(ambient)
-        if amb.shape != images.shape[1:]:
-            raise ValueError(f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, "
-                             f"frames have {images.shape[1:]}")
-        images = _subtract_ambient(images, amb, out=images)
+    images, _ = _frames(paths, ambient)
     silhouette = read_image(mask, linearize="none")
     if silhouette.ndim == 3:
         silhouette = silhouette.max(axis=-1)
@@ -114,6 +123,12 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
         report["reference"] = {"path": os.fspath(reference), "angle_deg": angle.tolist(),
                                "max_deg": float(angle.max()), "mean_deg": float(angle.mean())}
 
+    ratios = None
+    if board is not None:
+        ratios = _board_ratios(board, board_ambient, lights, board_mask, intensity_mask,
+                               intensity_normal, board_normal)
+        report["intensity_ratios"] = ratios
+
     os.makedirs(out, exist_ok=True)
     save_lights(os.path.join(out, "lights.txt"), lights, comment=(
         f"jaxps calibrate: mirror sphere at row {r0:.2f}, col {c0:.2f}, radius {radius:.2f} px\n"
@@ -122,8 +137,56 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
     plot_calibration(os.path.join(out, "calibration.png"), images_grey.max(axis=0), cal, names,
                      lights, ref)
     report["outputs"] = ["lights.txt", "calibration.json", "calibration.png"]
+    if ratios is not None:
+        with open(os.path.join(out, "intensity_ratios.txt"), "w") as f:
+            f.write("# jaxps calibrate: per light, the flash at the subject's place (the board) "
+                    "over the flash at the reference target\n"
+                    f"# target: {ratios['target_mask']}; board: {ratios['board_mask']}\n")
+            f.writelines(f"{r:.6f}  # {name}\n"
+                         for r, name in zip(ratios["ratios"], ratios["board_frames"]))
+        report["outputs"].append("intensity_ratios.txt")
     write_json(os.path.join(out, "calibration.json"), report)
     return report
+
+
+def _frames(paths, ambient):
+    """The frames at `paths` (`load_stack`), `ambient` (a file, or None) subtracted."""
+    images, saturated = load_stack(paths)
+    if ambient is not None:
+        amb = read_image(ambient)
+        if amb.shape != images.shape[1:]:
+            raise ValueError(f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, "
+                             f"frames have {images.shape[1:]}")
+        images = _subtract_ambient(images, amb, out=images)
+    return images, saturated
+
+
+def _board_ratios(board, ambient, lights, board_mask, target_mask, target_normal,
+                  board_normal) -> dict:
+    """`target_ratios` on the board's frames, and what they were measured on."""
+    if isinstance(board, (str, os.PathLike)) and os.path.isdir(board):
+        paths = list_frames(board)
+        ambient = _folder_ambient(board, ambient)
+    else:
+        paths = [os.fspath(p) for p in ([board] if isinstance(board, (str, os.PathLike))
+                                        else board)]
+        if _is_auto(ambient):
+            raise ValueError("ambient='auto' takes the board's ambient frame from its folder; "
+                             "with a list of files, give the ambient file")
+    if len(paths) != len(lights):
+        raise ValueError(f"board: {len(paths)} frames, but the sphere gave {len(lights)} "
+                         "lights (one board frame per light, in the same order)")
+    images, saturated = _frames(paths, ambient)
+    shape = images.shape[1:3]
+    ratios = target_ratios(images, lights, read_mask(target_mask, shape),
+                           read_mask(board_mask, shape), target_normal=target_normal,
+                           subject_normal=board_normal, saturated=saturated)
+    return {"board_frames": [os.path.basename(p) for p in paths],
+            "board_mask": os.fspath(board_mask), "target_mask": os.fspath(target_mask),
+            "board_normal": [0.0, 0.0, 1.0] if board_normal is None else list(board_normal),
+            "target_normal": ([0.0, 0.0, 1.0] if target_normal is None
+                              else list(target_normal)),
+            "ratios": ratios.astype(float).round(6).tolist()}
 
 
 def plot_calibration(path, image, cal, names, lights, reference=None) -> None:
@@ -194,8 +257,14 @@ def run(args) -> int:
         raise ValueError("--tolerance is the largest angle (degrees, >= 0) a light may move "
                          "from --reference: give both")
     one_folder = len(args.frames) == 1 and os.path.isdir(args.frames[0])
+    board = args.board
+    if board is not None and len(board) == 1:
+        board = board[0]
     report = calibrate(args.frames[0] if one_folder else args.frames, args.out, mask=args.mask,
-                       ambient=args.ambient, level=args.level, reference=args.reference)
+                       ambient=args.ambient, level=args.level, reference=args.reference,
+                       board=board, board_mask=args.board_mask,
+                       intensity_mask=args.intensity_mask,
+                       intensity_normal=args.intensity_normal, board_normal=args.board_normal)
     sphere = report["sphere"]
     print(f"calibrated {len(report['lights'])} lights on the mirror sphere (centre row "
           f"{sphere['centre_row']:.1f}, col {sphere['centre_col']:.1f}, radius "
@@ -211,6 +280,9 @@ def run(args) -> int:
         worst = int(np.argmax(ref["angle_deg"]))
         print(f"against {ref['path']}: mean {ref['mean_deg']:.2f} deg, largest "
               f"{ref['max_deg']:.2f} deg ({report['lights'][worst]['frame']})")
+    if "intensity_ratios" in report:
+        print("flash at the subject's place over the target, per light: "
+              + " ".join(f"{r:.3f}" for r in report["intensity_ratios"]["ratios"]))
     print(f"outputs: {args.out}/" + " ".join(report["outputs"]))
     if args.tolerance is not None and ref["max_deg"] > args.tolerance:
         moved = [f"{light['frame']} ({angle:.2f} deg)"

@@ -74,6 +74,7 @@ def reconstruct(
     register: bool = True,
     intensity_mask=None,
     intensity_normal=None,
+    intensity_ratios=None,
 ) -> dict:
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
@@ -81,8 +82,8 @@ def reconstruct(
     `"dropped_frames"` in the summary; on by default, as in `load_capture`). `intensities`:
     see `load_capture` (the summary's `"intensities"` holds the method, the per-frame
     estimates and, for `"semi_calibrated"`, the fit's report `"fit"`; `"gains"` holds their
-    inverses). `intensity_mask`, `intensity_normal`: a reference target in view, as in
-    `load_capture` (named in the summary's `"intensities"` as `"target"`).
+    inverses). `intensity_mask`, `intensity_normal`, `intensity_ratios`: a reference target in
+    view, as in `load_capture` (named in the summary's `"intensities"` as `"target"`).
     `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
     the measured shifts and whether the frames were moved).
     `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`)."""
@@ -96,7 +97,8 @@ def reconstruct(
                          yale_names=yale_names, ambient=ambient, mask=mask,
                          intensities=intensities, crop_face=crop_face,
                          check_quality=check_quality, register=register,
-                         intensity_mask=intensity_mask, intensity_normal=intensity_normal)
+                         intensity_mask=intensity_mask, intensity_normal=intensity_normal,
+                         intensity_ratios=intensity_ratios)
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
 
@@ -127,7 +129,7 @@ def reconstruct(
                  "channels": int(cap.images.shape[3]) if cap.images.ndim == 4 else 1},
         "crop": cap.crop,
         "gains": cap.gains.round(6).tolist(),
-        "intensities": _intensities(cap, intensity_mask, intensity_normal),
+        "intensities": _intensities(cap, intensity_mask, intensity_normal, intensity_ratios),
         "motion": _motion(cap),
         "method": method,
         "integration": integration,
@@ -176,7 +178,7 @@ def _write_outputs(out, res, height, ok, *, obj=False, points=False, title="", t
     return scale, meshes["faces"]
 
 
-def _intensities(cap, intensity_mask, intensity_normal) -> dict:
+def _intensities(cap, intensity_mask, intensity_normal, intensity_ratios=None) -> dict:
     """The summary's record of `load_capture`'s flash strengths: the method, the per-frame
     estimates, the semi-calibrated fit's report and the reference target, where there are."""
     out = {"method": cap.intensity_method,
@@ -189,6 +191,10 @@ def _intensities(cap, intensity_mask, intensity_normal) -> dict:
         normal = [0.0, 0.0, 1.0] if intensity_normal is None else [float(v) for v in
                                                                      intensity_normal]
         out["target"] = {"mask": where, "normal": normal}
+        if intensity_ratios is not None:
+            out["target"]["ratios"] = (
+                os.fspath(intensity_ratios) if isinstance(intensity_ratios, (str, os.PathLike))
+                else np.asarray(intensity_ratios, float).round(6).tolist())
     return out
 
 
@@ -215,6 +221,7 @@ def run(args) -> int:
         integration=args.integration, report=args.report, check_quality=args.check_quality,
         obj=args.obj, points=args.points, register=args.register,
         intensity_mask=args.intensity_mask, intensity_normal=args.intensity_normal,
+        intensity_ratios=args.intensity_ratios,
     )
     if summary["dropped_frames"]:
         print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))
@@ -310,7 +317,8 @@ def _run_many(args) -> int:
                         mask=args.mask, crop_face=args.crop_face,
                         intensities=args.intensities, register=args.register,
                         intensity_mask=args.intensity_mask,
-                        intensity_normal=args.intensity_normal)
+                        intensity_normal=args.intensity_normal,
+                        intensity_ratios=args.intensity_ratios)
     results, rows = reconstruct_many(args.frames, method=args.method,
                                      check_quality=args.check_quality, **load_options)
     os.makedirs(args.out, exist_ok=True)

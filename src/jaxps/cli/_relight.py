@@ -54,6 +54,7 @@ def relight_capture(
     intensities: str = "frontal",
     intensity_mask=None,
     intensity_normal=None,
+    intensity_ratios=None,
 ) -> dict:
     """Fit `method` to a capture and write relit PNGs, `relight.gif` and `relight.json` to `out`.
 
@@ -72,8 +73,9 @@ def relight_capture(
       inconsistent) before fitting; they are listed under `"dropped_frames"` in the summary
       (on by default, as in `load_capture`).
     - `register`: undo motion between frames (see `load_capture`; `"motion"` in the summary).
-    - `intensities`, `intensity_mask`, `intensity_normal`: each frame's flash strength, as for
-      `load_capture` (`"intensities"` in the summary, as `jaxps reconstruct` writes it).
+    - `intensities`, `intensity_mask`, `intensity_normal`, `intensity_ratios`: each frame's
+      flash strength, as for `load_capture` (`"intensities"` in the summary, as
+      `jaxps reconstruct` writes it).
 
     **Returns:** the summary written to `relight.json` (fit report, files, timings).
     """
@@ -90,7 +92,8 @@ def relight_capture(
     t = time.perf_counter()
     cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask,
                        check_quality=check_quality, register=register, intensities=intensities,
-                       intensity_mask=intensity_mask, intensity_normal=intensity_normal)
+                       intensity_mask=intensity_mask, intensity_normal=intensity_normal,
+                       intensity_ratios=intensity_ratios)
     if cap.lights is None:
         raise ValueError("no lights: give --lights FILE or --yale-names")
     images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
@@ -126,7 +129,7 @@ def relight_capture(
     fit = model.fit._asdict()
     summary = {
         "frames": list(cap.names), "dropped_frames": list(cap.dropped), "method": method,
-        "intensities": _intensities(cap, intensity_mask, intensity_normal),
+        "intensities": _intensities(cap, intensity_mask, intensity_normal, intensity_ratios),
         "motion": _motion(cap),
         "fit": fit,
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
@@ -153,7 +156,7 @@ def run(args) -> int:
         n_samples=args.samples, max_steps=args.max_steps, seed=args.seed,
         check_quality=args.check_quality, register=args.register,
         intensities=args.intensities, intensity_mask=args.intensity_mask,
-        intensity_normal=args.intensity_normal)
+        intensity_normal=args.intensity_normal, intensity_ratios=args.intensity_ratios)
     if s["dropped_frames"]:
         print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
     if "target" in s["intensities"]:
