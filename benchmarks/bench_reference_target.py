@@ -33,6 +33,17 @@ and the normals are scored as `bench_faces.py` scores them (the same reference, 
 half-set floor; the target's corner left out). This checks the whole command on real frames
 (quality checks, registration and the crop with a still target in view), not the target's
 physics, which the synthetic part checks.
+
+`--near` (`reference_target_near.json`): the synthetic face and target under near lights. The
+scanner's five lamps stand 1000 or 2000 mm from the face's mean depth, along the cross's
+directions; 1 mm pixels; the target 100 mm behind the face's mean depth, facing the camera;
+Lambertian, 0.5% noise, the same flashes. The target is lit from other distances than the
+face, by a factor per lamp. A flat board at the face's mean depth, imaged once under other
+flashes with the target in view, gives `acquisition.target_ratios`, which put it right.
+Estimates: frontal over the face (the default), the target, the target times the ratios, and
+the true flashes. The face is solved as the command line solves it (distant lights, L2) and
+with the lamps' positions known (`near_photometric_stereo`); median angular error over the
+face, then the median over the seeds, and the largest error of the flash strengths.
 """
 
 from __future__ import annotations
@@ -237,6 +248,84 @@ def yale(register, figure_subject="yaleB03") -> dict:
         "median_floor_deg": float(np.median([r["floor_median_deg"] for r in rows.values()]))}
 
 
+NEAR_DEPTH = -100.0  # mm, the target behind the face's mean depth
+
+
+def near_capture(seed, lights, distance, board=None):
+    """`(images, face, target, true strengths, positions)` of the near-light scanner: a face
+    (tilted as in `capture`), or with `board` (a mask) a flat board there at depth 0 (`face`
+    is then None)."""
+    rng = np.random.default_rng(seed)
+    if board is None:
+        surface = tilted_face(H, W, rng.uniform(-0.08, 0.08, 2))
+        region = np.asarray(surface.mask)
+        normals = np.asarray(surface.normals, np.float64)
+        depth = np.asarray(surface.height, np.float64)  # 1 mm pixels: pixels are mm
+        depth = depth - depth[region].mean()
+    else:
+        surface, region = None, board
+        normals = np.broadcast_to([0.0, 0.0, 1.0], (H, W, 3))
+        depth = np.zeros((H, W))
+    target = np.zeros((H, W), bool)
+    target[TARGET] = True
+    points = np.asarray(jaxps.surface_points(jnp.asarray(depth, jnp.float32)), np.float64)
+    points[target, 2] = NEAR_DEPTH
+    normals = np.where(target[..., None], [0.0, 0.0, 1.0], normals)
+    positions = distance * lights
+    directions, falloff = (np.asarray(a, np.float64) for a in
+                           jaxps.near_light_field(positions, jnp.asarray(points, jnp.float32)))
+    albedo = np.where(target, TARGET_ALBEDO, np.where(region, 0.6, 0.0))
+    strength = np.exp(rng.normal(0, 0.1, len(lights)))
+    images = (np.maximum(np.einsum("khwc,hwc->khw", directions, normals), 0) * falloff * albedo
+              * strength[:, None, None])
+    images = images + 0.005 * rng.standard_normal(images.shape)
+    images = np.clip(np.where(region | target, images, 0), 0, 1).astype(np.float32)
+    return images, surface, target, strength / np.exp(np.mean(np.log(strength))), positions
+
+
+def near(seeds, lights) -> dict:
+    from jaxps.acquisition import target_ratios
+
+    board = np.zeros((H, W), bool)
+    board[32:224, 24:200] = True  # the face's place
+    rows = {}
+    for distance in (1000.0, 2000.0):
+        errors, near_errors, strength_errors = {}, {}, {}
+        for seed in seeds:
+            images, face, target, strength, positions = near_capture(seed, lights, distance)
+            board_images = near_capture(1000 + seed, lights, distance, board=board)[0]
+            ratios = target_ratios(board_images, lights, target, board)
+            mask = np.asarray(face.mask)
+            est = lambda **kw: np.asarray(jaxps.intensity_estimate(
+                images, lights, method="frontal", **kw), np.float64)
+            on_target = est(mask=target)
+            for name, e in {"frontal (face, the default)": est(mask=mask),
+                            "target": on_target, "target x ratios": on_target * ratios,
+                            "oracle": strength}.items():
+                e = e / np.exp(np.mean(np.log(e)))
+                frames = jnp.asarray(np.clip(images / e[:, None, None], 0, 1), jnp.float32)
+                far = jaxps.photometric_stereo(frames, lights, mask=mask)
+                close = jaxps.near_photometric_stereo(frames, positions, mask=mask).ps
+                for store, res in ((errors, far), (near_errors, close)):
+                    store.setdefault(name, []).append(jaxps.evaluate.angular_stats(
+                        res.normals, face.normals, mask=mask)["median_deg"])
+                strength_errors.setdefault(name, []).append(
+                    float(np.max(np.abs(e / strength - 1))))
+        key = f"lamps at {distance:g} mm"
+        rows[key] = {name: {
+            "distant_ps_median_over_seeds_deg": float(np.median(errors[name])),
+            "near_ps_median_over_seeds_deg": float(np.median(near_errors[name])),
+            "largest_intensity_error_median": float(np.median(strength_errors[name])),
+            "distant_ps_per_seed_deg": np.round(errors[name], 4).tolist(),
+            "near_ps_per_seed_deg": np.round(near_errors[name], 4).tolist()}
+            for name in errors}
+        print(key, {n: (round(r["distant_ps_median_over_seeds_deg"], 2),
+                        round(r["near_ps_median_over_seeds_deg"], 2),
+                        round(r["largest_intensity_error_median"], 4))
+                    for n, r in rows[key].items()}, flush=True)
+    return rows
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=10)
@@ -244,6 +333,8 @@ def main(argv=None):
                     help="the shared Yale B faces with an emulated target (see above)")
     ap.add_argument("--register", action="store_true",
                     help="with --yale: the reference from registered frames")
+    ap.add_argument("--near", action="store_true",
+                    help="the synthetic face under near lights, with the target's ratios")
     args = ap.parse_args(argv)
     command = ("OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_reference_target.py "
                + " ".join(sys.argv[1:] if argv is None else argv))
@@ -258,6 +349,12 @@ def main(argv=None):
         write_json("reference_target_yale" + "_registered" * args.register, out)
         return out
     lights = np.asarray(faces.lights_of(list(faces.CROSS)), np.float64)
+    if args.near:
+        out = {"command": command, "environment": environment(), "image": [H, W],
+               "pixel_mm": 1.0, "target_depth_mm": NEAR_DEPTH, "seeds": args.seeds,
+               "rows": near(range(args.seeds), lights.astype(np.float32))}
+        write_json("reference_target_near", out)
+        return out
     out = {"command": command,
            "environment": environment(), "image": [H, W], "seeds": args.seeds,
            "lights": [f"{a:+d},{e:+d}" for a, e in faces.CROSS],
