@@ -132,9 +132,10 @@ def load_capture(
     - `intensity_mask`: a mask image path or `(H, W)` bool array (full frame) of a flat, matte
       reference target in view, fixed to the scanner: `intensities` ("frontal" or "mean") is
       estimated over it, on the frames as read (before motion is undone and the face
-      cropped), instead of over `mask`, leaving out its pixels saturated in any frame. With `intensity_normal`, the target's normal in the
-      camera frame (default: facing the camera), "frontal" needs no assumption about the
-      subject's pose (docs/captures.md, "A reference target in view").
+      cropped), instead of over `mask`, leaving out its pixels saturated in any frame. With
+      `intensity_normal`, the target's normal in the camera frame (default: facing the
+      camera), "frontal" needs no assumption about the subject's pose (docs/captures.md, "A
+      reference target in view").
     - `intensity_ratios`: with `intensity_mask`, `(K,)` factors (or a text file of them, one
       per line, `#` comments) by which the flash at the subject's place exceeds the flash at
       the target, one per frame as given (before any is dropped): the target's estimates are
@@ -246,8 +247,8 @@ def load_capture(
         except ValueError as err:  # asked for by name: an error, not a silent fallback
             raise ValueError(f"intensity_mask: the reference target's intensities: {err}") \
                 from err
-        if ratios is not None:  # the frames kept, in order
-            e = e * ratios[[given.index(n) for n in names]]
+        if ratios is not None:
+            e = e * ratios[_kept(given, names)]
             e = (e / np.exp(np.mean(np.log(e)))).astype(np.float32)
 
     shifts, border = None, 0
@@ -340,6 +341,15 @@ def target_ratios(
             raise ValueError(f"{what}: {err}") from err
     ratios = estimates[0] / estimates[1]
     return (ratios / np.exp(np.mean(np.log(ratios)))).astype(np.float32)
+
+
+def _kept(given, names):
+    """Indices into `given` of `names`, the frames the quality checks kept (in order)."""
+    kept = []
+    for i, name in enumerate(given):
+        if len(kept) < len(names) and name == names[len(kept)]:
+            kept.append(i)
+    return kept
 
 
 def _ratios(ratios, k):

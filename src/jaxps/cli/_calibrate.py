@@ -4,7 +4,9 @@ The file-facing side of `jaxps.lights_from_chrome`: read the frames (one per lig
 order the scanner fires them) and the sphere's mask, find each light's highlight, and write the
 `lights.txt` that `jaxps reconstruct --lights` reads, with `calibration.json` (the sphere, each
 highlight and light, and the angles to a reference set) and `calibration.png` (the highlights
-on the sphere, the lights as seen from the camera) beside it.
+on the sphere, the lights as seen from the camera) beside it. With frames of a flat board at
+the subject's place (`--board`), it also writes the per-light `intensity_ratios.txt` that a
+reference target needs under near lights (`acquisition.target_ratios`).
 """
 
 from __future__ import annotations
@@ -178,9 +180,12 @@ def _board_ratios(board, ambient, lights, board_mask, target_mask, target_normal
                          "lights (one board frame per light, in the same order)")
     images, saturated = _frames(paths, ambient)
     shape = images.shape[1:3]
-    ratios = target_ratios(images, lights, read_mask(target_mask, shape),
-                           read_mask(board_mask, shape), target_normal=target_normal,
-                           subject_normal=board_normal, saturated=saturated)
+    try:  # the board is target_ratios' subject
+        ratios = target_ratios(images, lights, read_mask(target_mask, shape),
+                               read_mask(board_mask, shape), target_normal=target_normal,
+                               subject_normal=board_normal, saturated=saturated)
+    except ValueError as err:
+        raise ValueError(f"board: {err}".replace("board: subject", "board")) from None
     return {"board_frames": [os.path.basename(p) for p in paths],
             "board_mask": os.fspath(board_mask), "target_mask": os.fspath(target_mask),
             "board_normal": [0.0, 0.0, 1.0] if board_normal is None else list(board_normal),
