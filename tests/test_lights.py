@@ -61,6 +61,9 @@ def test_load_lights_errors_name_the_file(tmp_path, text, match):
 def test_missing_lights_file(tmp_path):
     with pytest.raises(FileNotFoundError, match="nothere.txt"):
         jaxps.load_lights(tmp_path / "nothere.txt")
+    (tmp_path / "image.png").write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00")  # an image by mistake
+    with pytest.raises(ValueError, match="image.png: not a text file"):
+        jaxps.load_lights(tmp_path / "image.png")
 
 
 def test_validate_lights_errors():

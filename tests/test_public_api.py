@@ -85,6 +85,8 @@ ADDED = {
 # Issue 17: `load_capture` and `jaxps.cli.reconstruct` gained `intensity_ratios` (a reference
 # target's flashes carried to the subject's place under near lights); those two entries
 # rewritten.
+# Not from an issue: `jaxps.cli.reconstruct` gained `light_positions` and `pixel_size` (near
+# lamps, solved by `near_photometric_stereo`); that entry rewritten again.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

@@ -48,12 +48,20 @@ def add_intensity_args(p) -> None:
                    "from lamp to lamp; 'jaxps calibrate --board' writes it")
 
 
-def add_light_args(p) -> None:
-    """The options every frame-reading subcommand shares: where lights come from, ambient."""
+def add_light_args(p, near=False) -> None:
+    """The options every frame-reading subcommand shares: where lights come from, ambient;
+    with `near`, also near point lights (`--light-positions`, `--pixel-size`)."""
     g = p.add_mutually_exclusive_group(required=True)
     g.add_argument("--lights", help="lights.txt: optional count line, then 'x y z' per frame")
     g.add_argument("--yale-names", action="store_true",
                    help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
+    if near:
+        g.add_argument("--light-positions", metavar="FILE",
+                       help="near lamps: 'x y z' per frame in mm, camera frame, origin at the "
+                       "frame's centre at the subject's mean depth; solved by "
+                       "near_photometric_stereo (needs --pixel-size)")
+        p.add_argument("--pixel-size", type=float, metavar="MM",
+                       help="with --light-positions: the size of a pixel at the subject, mm")
     p.add_argument("--ambient", help="ambient-only control frame to subtract; 'auto': the "
                    "file named *ambient* in each folder of frames (one per capture)")
 
@@ -74,7 +82,7 @@ def reconstruct_parser(sub) -> None:
     p.add_argument("--check-quality", action=argparse.BooleanOptionalAction, default=True,
                    help="drop frames flagged by jaxps.check_frames (corrupt, badly exposed or "
                    "inconsistent) before solving (default; --no-check-quality keeps every frame)")
-    add_light_args(p)
+    add_light_args(p, near=True)
     p.add_argument("--mask", help="mask image (non-zero inside), or 'auto' (from the mean image)")
     p.add_argument("--crop-face", action="store_true", help="crop to the Haar-detected face")
     add_intensity_args(p)

@@ -14,10 +14,11 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..acquisition import check_frames, drop_flagged, load_capture
+from ..acquisition import check_frames, drop_flagged, list_frames, load_capture
+from ..acquisition._capture import _kept
 from ..core import Status, status_counts
 from ..integration import integrate
-from ..ps import PSResult, photometric_stereo
+from ..ps import PSResult, near_photometric_stereo, photometric_stereo
 from ..report._mesh import write_meshes
 from ..report._writers import (
     write_albedo,
@@ -75,6 +76,8 @@ def reconstruct(
     intensity_mask=None,
     intensity_normal=None,
     intensity_ratios=None,
+    light_positions=None,
+    pixel_size: float | None = None,
 ) -> dict:
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
@@ -86,11 +89,22 @@ def reconstruct(
     view, as in `load_capture` (named in the summary's `"intensities"` as `"target"`).
     `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
     the measured shifts and whether the frames were moved).
-    `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`)."""
+    `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`).
+    `light_positions`, `pixel_size`: near point lights, for a rig whose lamps are close
+    enough that their directions and fall-off change over the face: `(K, 3)` positions (or a
+    file of `x y z` lines) in millimetres in the camera frame, the origin at the frame's centre
+    at the subject's mean depth, and the size of a pixel there in millimetres. The frames are
+    then solved by `near_photometric_stereo` (the summary's `"near_lights"` holds its steps);
+    the intensity estimate, registration and quality checks take the lamps' directions from
+    the origin. `lights` is then not given, and neither is `crop_face`."""
     import jax
 
     if len(frames) == 1 and os.path.isdir(frames[0]):
         frames = frames[0]
+    positions = None
+    if light_positions is not None or pixel_size is not None:
+        positions = _positions(light_positions, pixel_size, lights, yale_names, crop_face)
+        lights = positions / np.linalg.norm(positions, axis=1, keepdims=True)
     stages = _Stages(["load", "solve", "integrate", "write"])
     try:
         cap = stages.run("load frames", load_capture, frames, lights=lights,
@@ -102,7 +116,20 @@ def reconstruct(
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
 
+        near = None
+        if positions is not None:
+            given = [os.path.basename(p) for p in (
+                list_frames(frames) if isinstance(frames, (str, os.PathLike)) else frames)]
+            near_positions = positions[_kept(given, cap.names)]  # the frames the checks kept
+
         def solve():
+            nonlocal near
+            if positions is not None:
+                near = near_photometric_stereo(
+                    cap.images, near_positions, mask=cap.mask, pixel_size=pixel_size,
+                    method=method, sample_mask=~cap.saturated,
+                    shadow_threshold=shadow_threshold)
+                return jax.block_until_ready(near.ps)
             res = photometric_stereo(cap.images, cap.lights, mask=cap.mask, method=method,
                                      sample_mask=~cap.saturated,
                                      shadow_threshold=shadow_threshold)
@@ -141,6 +168,11 @@ def reconstruct(
         "timings_s": stages.times,
         "note": "timings include JIT compilation on the first call",
     }
+    if near is not None:
+        summary["near_lights"] = {
+            "positions_mm": near_positions.round(3).tolist(), "pixel_size_mm": pixel_size,
+            "steps": int(near.steps), "converged": bool(near.converged),
+            "height_changes_mm": np.asarray(near.changes).round(4).tolist()}
     if report:
         from ..report import lambertian_check_plot, write_report  # matplotlib: only when asked
 
@@ -176,6 +208,48 @@ def _write_outputs(out, res, height, ok, *, obj=False, points=False, title="", t
         for job in jobs[2:]:
             job.result()
     return scale, meshes["faces"]
+
+
+def _positions(light_positions, pixel_size, lights, yale_names, crop_face) -> np.ndarray:
+    """`reconstruct`'s near lights as `(K, 3)` float64 millimetres, checked; `ValueError`s
+    name the option."""
+    if light_positions is None or pixel_size is None:
+        raise ValueError("near lights need both light_positions (--light-positions) and "
+                         "pixel_size (--pixel-size)")
+    if lights is not None or yale_names:
+        raise ValueError("give either lights (or yale_names) or light_positions, not both")
+    if crop_face:
+        raise ValueError("light_positions are relative to the frame's centre: they do not "
+                         "follow crop_face (--crop-face); give a mask instead")
+    if not (np.isfinite(pixel_size) and pixel_size > 0):
+        raise ValueError(f"pixel_size must be a positive number of millimetres, got "
+                         f"{pixel_size}")
+    where = ""
+    if isinstance(light_positions, (str, os.PathLike)):
+        where = f" ({os.fspath(light_positions)})"
+        if not os.path.isfile(light_positions):
+            raise FileNotFoundError(f"light positions file not found: "
+                                    f"{os.fspath(light_positions)}")
+        try:
+            with open(light_positions) as f:
+                rows = [line.split("#", 1)[0].split() for line in f]
+        except UnicodeDecodeError:
+            raise ValueError(f"light_positions{where}: not a text file") from None
+        rows = [r for r in rows if r]
+        if rows and len(rows[0]) == 1:  # a count line, as in lights.txt
+            rows = rows[1:]
+        try:
+            light_positions = [[float(v) for v in r] for r in rows]
+        except ValueError as err:
+            raise ValueError(f"light_positions{where}: {err}") from None
+    positions = np.asarray(light_positions, np.float64)
+    if positions.ndim != 2 or positions.shape[1] != 3 or len(positions) < 3:
+        raise ValueError(f"light_positions{where}: need 'x y z' for each of at least 3 lights, "
+                         f"got shape {positions.shape}")
+    if not np.all(np.isfinite(positions)) or np.any(positions[:, 2] <= 0):
+        raise ValueError(f"light_positions{where}: every lamp must be finite and in front of "
+                         "the subject (z > 0)")
+    return positions
 
 
 def _intensities(cap, intensity_mask, intensity_normal, intensity_ratios=None) -> dict:
@@ -222,6 +296,7 @@ def run(args) -> int:
         obj=args.obj, points=args.points, register=args.register,
         intensity_mask=args.intensity_mask, intensity_normal=args.intensity_normal,
         intensity_ratios=args.intensity_ratios,
+        light_positions=args.light_positions, pixel_size=args.pixel_size,
     )
     if summary["dropped_frames"]:
         print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))
@@ -313,6 +388,8 @@ def _run_many(args) -> int:
     `OUT/<folder>/normals.png`, `albedo.png`, `status.npy`, prints a summary table and writes
     `OUT/summary.json` and `OUT/summary.csv` (the table). Returns 1 if any capture failed
     (named in the table), else 0."""
+    if args.light_positions is not None:
+        raise ValueError("--light-positions: near lights take one capture at a time")
     load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
                         mask=args.mask, crop_face=args.crop_face,
                         intensities=args.intensities, register=args.register,

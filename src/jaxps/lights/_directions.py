@@ -107,11 +107,14 @@ def load_lights(path: str | os.PathLike) -> Float[np.ndarray, "K 3"]:
     if not os.path.isfile(path):
         raise FileNotFoundError(f"lights file not found: {path}")
     rows = []
-    with open(path) as f:
-        for line in f:
-            line = line.split("#", 1)[0].strip()
-            if line:
-                rows.append(line.replace(",", " ").split())
+    try:
+        with open(path) as f:
+            for line in f:
+                line = line.split("#", 1)[0].strip()
+                if line:
+                    rows.append(line.replace(",", " ").split())
+    except UnicodeDecodeError:
+        raise ValueError(f"lights file {path}: not a text file") from None
     count = None
     if rows and len(rows[0]) == 1:
         count = rows.pop(0)[0]
