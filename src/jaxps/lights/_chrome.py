@@ -9,10 +9,11 @@ The highlight is the centroid of the largest connected blob at or above `level` 
 brightest value $m$ on the sphere, each pixel weighted by its height above that level,
 $I - \\text{level}\\, m$. This is the classic calibration of e.g. Woodham's and the UW CSE 455
 photometric-stereo set-up (the source of shared/data/psm). The weights fall to 0 at the
-blob's edge, so the centroid moves smoothly with the highlight instead of by whole pixels: on
-synthetic spheres of 41 px radius the largest error of five lights was 0.16-0.35 degrees
-(median over 8 seeds, for four kinds of lamp) against 0.51-0.81 for the intensity-weighted
-centroid of the pixels above 0.9 m (`benchmarks/bench_chrome.py`; docs/robust.md).
+blob's edge, so the centroid moves smoothly with the highlight; with weights $I$, a pixel
+that crosses the threshold enters or leaves with its full weight. On synthetic spheres of
+41 px radius the largest error of five lights was 0.16-0.35 degrees (median over 8 seeds,
+for four kinds of lamp), against 0.51-0.81 for the intensity-weighted centroid of the pixels
+above 0.9 m (`benchmarks/bench_chrome.py`; docs/robust.md).
 """
 
 from __future__ import annotations
