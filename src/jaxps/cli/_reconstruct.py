@@ -18,6 +18,7 @@ from ..acquisition import check_frames, drop_flagged, list_frames, load_capture
 from ..acquisition._capture import _kept
 from ..core import Status, status_counts
 from ..integration import integrate
+from ..lights._directions import _read_xyz
 from ..ps import PSResult, near_photometric_stereo, photometric_stereo
 from ..report._mesh import write_meshes
 from ..report._writers import (
@@ -231,15 +232,7 @@ def _positions(light_positions, pixel_size, lights, yale_names, crop_face) -> np
             raise FileNotFoundError(f"light positions file not found: "
                                     f"{os.fspath(light_positions)}")
         try:
-            with open(light_positions) as f:
-                rows = [line.split("#", 1)[0].split() for line in f]
-        except UnicodeDecodeError:
-            raise ValueError(f"light_positions{where}: not a text file") from None
-        rows = [r for r in rows if r]
-        if rows and len(rows[0]) == 1:  # a count line, as in lights.txt
-            rows = rows[1:]
-        try:
-            light_positions = [[float(v) for v in r] for r in rows]
+            light_positions = _read_xyz(os.fspath(light_positions), "light positions file")
         except ValueError as err:
             raise ValueError(f"light_positions{where}: {err}") from None
     positions = np.asarray(light_positions, np.float64)

@@ -106,6 +106,17 @@ def load_lights(path: str | os.PathLike) -> Float[np.ndarray, "K 3"]:
     path = os.fspath(path)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"lights file not found: {path}")
+    data = _read_xyz(path, "lights file")
+    try:
+        return validate_lights(data)
+    except ValueError as err:
+        raise ValueError(f"lights file {path}: {err}") from None
+
+
+def _read_xyz(path: str, label: str) -> np.ndarray:
+    """The ``x y z`` rows of a ``lights.txt``-style file as `(N, 3)` float64: ``#`` comments,
+    commas or spaces, an optional first line with the count. `ValueError`s start with
+    `label` and the path (`load_lights`'s, and `jaxps reconstruct --light-positions`')."""
     rows = []
     try:
         with open(path) as f:
@@ -114,24 +125,21 @@ def load_lights(path: str | os.PathLike) -> Float[np.ndarray, "K 3"]:
                 if line:
                     rows.append(line.replace(",", " ").split())
     except UnicodeDecodeError:
-        raise ValueError(f"lights file {path}: not a text file") from None
+        raise ValueError(f"{label} {path}: not a text file") from None
     count = None
     if rows and len(rows[0]) == 1:
         count = rows.pop(0)[0]
     bad = [r for r in rows if len(r) != 3]
     if bad:
-        raise ValueError(f"lights file {path}: expected 3 numbers per line, got {bad[0]}")
+        raise ValueError(f"{label} {path}: expected 3 numbers per line, got {bad[0]}")
     try:
         count = None if count is None else int(count)
         data = np.array([[float(v) for v in r] for r in rows], dtype=np.float64).reshape(-1, 3)
     except ValueError as err:
-        raise ValueError(f"cannot parse lights file {path}: {err}") from None
+        raise ValueError(f"cannot parse {label} {path}: {err}") from None
     if count is not None and count != len(data):
-        raise ValueError(f"lights file {path}: header says {count} lights, found {len(data)}")
-    try:
-        return validate_lights(data)
-    except ValueError as err:
-        raise ValueError(f"lights file {path}: {err}") from None
+        raise ValueError(f"{label} {path}: header says {count} lights, found {len(data)}")
+    return data
 
 
 def save_lights(path: str | os.PathLike, lights: Float[ArrayLike, "K 3"], *,
