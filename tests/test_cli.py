@@ -346,7 +346,7 @@ def test_reconstruct_with_near_light_positions(tmp_path, capsys):
         assert main([*base, *extra, "--out", str(tmp_path / name)]) == 0
         got = read_normal_map(tmp_path / name / "normals.png")
         median[name] = np.median(np.asarray(jaxps.angular_error(got, normals))[inside])
-    assert median["near"] < 1.0 and median["distant"] > 5.0  # measured 0.36 and 6.06
+    assert median["near"] < 1.0 and median["distant"] > 5.0  # measured 0.35 and 6.06
     near = json.loads((tmp_path / "near" / "summary.json").read_text())["near_lights"]
     assert near["converged"] and near["pixel_size_mm"] == px
     np.testing.assert_allclose(near["positions_mm"], positions, atol=1e-3)
@@ -355,9 +355,9 @@ def test_reconstruct_with_near_light_positions(tmp_path, capsys):
     positions_file = str(tmp_path / "positions.txt")
     for extra, message in (
             (["--light-positions", positions_file], "pixel_size (--pixel-size)"),
-            (["--light-positions", positions_file, "--pixel-size", "2", "--crop-face"],
-             "crop_face"),
             (["--light-positions", positions_file, "--pixel-size", "-1"], "pixel_size must"),
+            (["--light-positions", positions_file, "--pixel-size", "2", "--intensities",
+              "semi_calibrated"], "fits distant lights"),
             (["--light-positions", str(tmp_path / "mask.png"), "--pixel-size", "2"],
              "light_positions ("),
             (["--light-positions", str(tmp_path / "none.txt"), "--pixel-size", "2"],
@@ -368,3 +368,57 @@ def test_reconstruct_with_near_light_positions(tmp_path, capsys):
     assert main([*base, "--light-positions", str(tmp_path / "behind.txt"), "--pixel-size", "2",
                  "--out", str(tmp_path / "bad")]) == 2
     assert "in front of the subject" in capsys.readouterr().err
+
+
+def test_reconstruct_near_lights_with_face_crop(tmp_path, monkeypatch):
+    """`--crop-face` with near lamps: the lamps' positions stay measured from the frame's
+    centre, and the crop is solved with it (`near_photometric_stereo(centre=)`); the flash
+    strengths are estimated with the lamps as the face sees them. The face sits off the
+    camera axis in a larger frame; the face detector is replaced by its box, since a rendered
+    relief is no face to a Haar cascade (not the shared data)."""
+    import cv2
+    import jax.numpy as jnp
+
+    from jaxps.acquisition import _capture
+
+    px = 2.0
+    face = jaxps.synthetic.face_like(96)
+    inside = np.asarray(face.mask)
+    normals = np.asarray(face.normals, np.float64)
+    depth = np.asarray(face.height, np.float64) * px
+    depth = depth - depth[inside].mean()
+    (h0, w0), (top, left), (h, w) = (192, 256), (60, 150), inside.shape
+    rows, cols = np.mgrid[top:top + h, left:left + w]
+    points = np.stack([(cols - (w0 - 1) / 2) * px, ((h0 - 1) / 2 - rows) * px, depth], -1)
+    positions = 1000.0 * np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
+    directions, falloff = (np.asarray(a, np.float64) for a in
+                           jaxps.near_light_field(positions, jnp.asarray(points, jnp.float32)))
+    frames = np.zeros((len(positions), h0, w0))
+    frames[:, top:top + h, left:left + w] = (
+        np.maximum(np.einsum("khwc,hwc->khw", directions, normals), 0) * falloff * 0.6 * inside)
+    (tmp_path / "face").mkdir()
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(tmp_path / "face" / f"f{k}.png"),
+                    np.round(np.clip(frame, 0, 1) * 65535).astype(np.uint16))
+    full_mask = np.zeros((h0, w0), bool)
+    full_mask[top:top + h, left:left + w] = inside
+    cv2.imwrite(str(tmp_path / "mask.png"), full_mask.astype(np.uint8) * 255)
+    (tmp_path / "positions.txt").write_text("".join(f"{x} {y} {z}\n" for x, y, z in positions))
+    monkeypatch.setattr(_capture, "detect_face", lambda image: (top, left, h, w))
+    assert main(["reconstruct", str(tmp_path / "face"), "--mask", str(tmp_path / "mask.png"),
+                 "--no-register", "--crop-face", "--light-positions",
+                 str(tmp_path / "positions.txt"), "--pixel-size", str(px), "--out",
+                 str(tmp_path / "out")]) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    t, l, ch, cw = summary["crop"]
+    assert (ch, cw) != (h0, w0) and t <= top and l <= left
+    np.testing.assert_allclose(summary["near_lights"]["centre_px"],
+                               [(h0 - 1) / 2 - t, (w0 - 1) / 2 - l])
+    got = read_normal_map(tmp_path / "out" / "normals.png")
+    truth = np.zeros((h0, w0, 3))
+    truth[top:top + h, left:left + w] = normals
+    truth = truth[t:t + ch, l:l + cw]
+    error = np.asarray(jaxps.angular_error(got, truth))[full_mask[t:t + ch, l:l + cw]]
+    # Measured: 0.63 deg with the default frontal intensities (0.004 with --intensities none).
+    # Before the strengths were re-estimated at the face (`_near_intensities`): 12.8 deg.
+    assert np.median(error) < 1.0, np.median(error)

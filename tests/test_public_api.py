@@ -87,6 +87,9 @@ ADDED = {
 # rewritten.
 # Not from an issue: `jaxps.cli.reconstruct` gained `light_positions` and `pixel_size` (near
 # lamps, solved by `near_photometric_stereo`); that entry rewritten again.
+# Issue 17 (near lamps with a face crop): `surface_points` and `near_photometric_stereo` gained
+# `centre` (where the camera axis meets a cropped image) and `Capture` the field `frame_size`
+# (the frame that `crop` is a box of); those three entries rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

@@ -58,6 +58,8 @@ class Capture(NamedTuple):
     - `intensity_fit`: for `intensity_method="semi_calibrated"`, the fit's report (host
       values): `converged`, `fallback` (the frontal start was used), `steps`, `objective`
       (start, used) and `visibility` (`jaxps.flash_visibility` of the lights); else None.
+    - `frame_size`: `(height, width)` of the frames as read, before any crop (the frame that
+      `crop` is a box of, and in which near lamps' positions are measured).
     """
 
     images: np.ndarray
@@ -73,6 +75,7 @@ class Capture(NamedTuple):
     shifts: np.ndarray | None = None
     registered: bool = False
     intensity_fit: dict | None = None
+    frame_size: tuple[int, int] | None = None
 
 
 def load_capture(
@@ -287,7 +290,7 @@ def load_capture(
     return Capture(aligned(images, np.float32), light_array, mask_array,
                    saturated, names, box, (1 / e).astype(np.float32),
                    tuple(n for n in given if n not in names), e, method, shifts, border > 0,
-                   fit)
+                   fit, tuple(int(v) for v in full_size))
 
 
 def target_ratios(

@@ -97,14 +97,15 @@ def reconstruct(
     at the subject's mean depth, and the size of a pixel there in millimetres. The frames are
     then solved by `near_photometric_stereo` (the summary's `"near_lights"` holds its steps);
     the intensity estimate, registration and quality checks take the lamps' directions from
-    the origin. `lights` is then not given, and neither is `crop_face`."""
+    the origin. `lights` is then not given. With `crop_face` the positions stay measured from
+    the frame's centre: the crop is solved with that centre (`"centre_px"` in the summary)."""
     import jax
 
     if len(frames) == 1 and os.path.isdir(frames[0]):
         frames = frames[0]
     positions = None
     if light_positions is not None or pixel_size is not None:
-        positions = _positions(light_positions, pixel_size, lights, yale_names, crop_face)
+        positions = _positions(light_positions, pixel_size, lights, yale_names, intensities)
         lights = positions / np.linalg.norm(positions, axis=1, keepdims=True)
     stages = _Stages(["load", "solve", "integrate", "write"])
     try:
@@ -122,13 +123,16 @@ def reconstruct(
             given = [os.path.basename(p) for p in (
                 list_frames(frames) if isinstance(frames, (str, os.PathLike)) else frames)]
             near_positions = positions[_kept(given, cap.names)]  # the frames the checks kept
+            centre = _frame_centre(cap)
+            if intensity_mask is None:
+                cap = _near_intensities(cap, near_positions, pixel_size, centre)
 
         def solve():
             nonlocal near
             if positions is not None:
                 near = near_photometric_stereo(
                     cap.images, near_positions, mask=cap.mask, pixel_size=pixel_size,
-                    method=method, sample_mask=~cap.saturated,
+                    centre=centre, method=method, sample_mask=~cap.saturated,
                     shadow_threshold=shadow_threshold)
                 return jax.block_until_ready(near.ps)
             res = photometric_stereo(cap.images, cap.lights, mask=cap.mask, method=method,
@@ -172,6 +176,7 @@ def reconstruct(
     if near is not None:
         summary["near_lights"] = {
             "positions_mm": near_positions.round(3).tolist(), "pixel_size_mm": pixel_size,
+            "centre_px": None if centre is None else [round(v, 3) for v in centre],
             "steps": int(near.steps), "converged": bool(near.converged),
             "height_changes_mm": np.asarray(near.changes).round(4).tolist()}
     if report:
@@ -211,7 +216,7 @@ def _write_outputs(out, res, height, ok, *, obj=False, points=False, title="", t
     return scale, meshes["faces"]
 
 
-def _positions(light_positions, pixel_size, lights, yale_names, crop_face) -> np.ndarray:
+def _positions(light_positions, pixel_size, lights, yale_names, intensities) -> np.ndarray:
     """`reconstruct`'s near lights as `(K, 3)` float64 millimetres, checked; `ValueError`s
     name the option."""
     if light_positions is None or pixel_size is None:
@@ -219,9 +224,9 @@ def _positions(light_positions, pixel_size, lights, yale_names, crop_face) -> np
                          "pixel_size (--pixel-size)")
     if lights is not None or yale_names:
         raise ValueError("give either lights (or yale_names) or light_positions, not both")
-    if crop_face:
-        raise ValueError("light_positions are relative to the frame's centre: they do not "
-                         "follow crop_face (--crop-face); give a mask instead")
+    if intensities == "semi_calibrated":
+        raise ValueError("intensities='semi_calibrated' (--intensities) fits distant lights; "
+                         "with light_positions use 'frontal', 'mean' or 'none'")
     if not (np.isfinite(pixel_size) and pixel_size > 0):
         raise ValueError(f"pixel_size must be a positive number of millimetres, got "
                          f"{pixel_size}")
@@ -243,6 +248,45 @@ def _positions(light_positions, pixel_size, lights, yale_names, crop_face) -> np
         raise ValueError(f"light_positions{where}: every lamp must be finite and in front of "
                          "the subject (z > 0)")
     return positions
+
+
+def _frame_centre(cap) -> tuple[float, float] | None:
+    """The centre of the frames as read, `(row, column)` in the pixels of `cap`'s crop (near
+    lamps' positions are measured from it), or None when `cap` is not cropped."""
+    if cap.crop is None:
+        return None
+    top, left = cap.crop[:2]
+    h0, w0 = cap.frame_size
+    return (h0 - 1) / 2 - top, (w0 - 1) / 2 - left
+
+
+def _near_intensities(cap, positions, pixel_size, centre):
+    """`cap` with its flash strengths re-estimated for near lamps at `positions`.
+
+    `load_capture` estimates them as distant lights from the origin: `"mean"` takes each
+    frame's mean over the mask as its strength, `"frontal"` divides that by $l_{k,z}$. Near
+    lamps light the face in the mask with the direction $l_k(X)$ and the fall-off $a_k(X)$ of
+    its points $X$, which for a face off the camera axis differ by lamp; the fall-off would
+    then be divided out twice, once here and once by `near_photometric_stereo`. So the
+    estimates are divided by the mean over the mask, on the plane $z = 0$, of $a_k$
+    (`"mean"`) or $a_k\\, l_{k,z}$ (`"frontal"`) instead."""
+    from ..lights import near_light_field, surface_points
+
+    if cap.intensity_method not in ("mean", "frontal"):
+        return cap
+    points = surface_points(np.zeros(cap.mask.shape, np.float32), pixel_size=pixel_size,
+                            centre=centre)
+    lights, falloff = (np.asarray(a, np.float64) for a in near_light_field(positions, points))
+    weight = falloff if cap.intensity_method == "mean" else falloff * lights[..., 2]
+    near = weight[:, cap.mask].mean(axis=1)
+    if cap.intensity_method == "frontal":
+        near = near / (positions[:, 2] / np.linalg.norm(positions, axis=1))  # the l_z used
+    e = np.asarray(cap.intensities, np.float64) / near
+    e = e / np.exp(np.mean(np.log(e)))
+    shape = (-1,) + (1,) * (cap.images.ndim - 1)
+    factor = (np.asarray(cap.intensities, np.float64) / e).astype(np.float32).reshape(shape)
+    return cap._replace(images=cap.images * factor, intensities=e.astype(np.float32),
+                        gains=(1 / e).astype(np.float32))
 
 
 def _intensities(cap, intensity_mask, intensity_normal, intensity_ratios=None) -> dict:

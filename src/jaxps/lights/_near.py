@@ -8,8 +8,11 @@ an LED's $\\cos^{\\mu}$ lobe around its axis (towards the origin). Both depend o
 $X$, which PS itself estimates: `jaxps.near_photometric_stereo` alternates the two.
 
 Frame: DESIGN.md camera frame (x right, y up, z toward the viewer), orthographic; the pixel at
-row r, column c sits at $x = (c - (W-1)/2)\\,s$, $y = ((H-1)/2 - r)\\,s$ with $s$ = `pixel_size`,
-and $z$ is the height. Positions and heights share the unit of `pixel_size`.
+row r, column c sits at $x = (c - c_0)\\,s$, $y = (r_0 - r)\\,s$ with $s$ = `pixel_size` and
+$(r_0, c_0)$ the pixel where the camera axis meets the image (`centre`; by default the image's
+centre, $((H-1)/2, (W-1)/2)$), and $z$ is the height. Positions and heights share the unit of
+`pixel_size`. For a crop of a frame, `centre` is the frame's centre in the crop's pixels, so that
+the points, and so the lights, stay where they were in the frame.
 """
 
 from __future__ import annotations
@@ -22,13 +25,17 @@ from jaxtyping import Array, ArrayLike, Float
 __all__ = ["near_light_field", "surface_points"]
 
 
-def surface_points(height: Float[ArrayLike, "H W"], *, pixel_size: float = 1.0
-                   ) -> Float[Array, "H W 3"]:
-    """Camera-frame points `(H, W, 3)` of a height map (orthographic, origin at the image centre).
+def surface_points(height: Float[ArrayLike, "H W"], *, pixel_size: float = 1.0,
+                   centre: tuple[float, float] | None = None) -> Float[Array, "H W 3"]:
+    """Camera-frame points `(H, W, 3)` of a height map (orthographic, origin at `centre`).
 
     **Arguments:**
     - `height`: `(H, W)` z toward the viewer, in the unit of `pixel_size`.
     - `pixel_size`: size of one pixel in that unit.
+    - `centre`: `(row, column)` of the origin, the pixel (fractional, and possibly outside
+      this image) where the camera axis meets it; default the image's centre,
+      `((H - 1) / 2, (W - 1) / 2)`. For a crop whose top-left corner is at `(top, left)` in an
+      `(H0, W0)` frame: `((H0 - 1) / 2 - top, (W0 - 1) / 2 - left)`.
 
     **Returns:** `(H, W, 3)` points $(x, y, z)$ in the dtype of `height`.
     """
@@ -40,10 +47,24 @@ def surface_points(height: Float[ArrayLike, "H W"], *, pixel_size: float = 1.0
     if not (np.isfinite(pixel_size) and pixel_size > 0):
         raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     h, w = height.shape
-    x = (jnp.arange(w, dtype=height.dtype) - (w - 1) / 2) * pixel_size
-    y = ((h - 1) / 2 - jnp.arange(h, dtype=height.dtype)) * pixel_size
+    row, col = _centre(centre, h, w)
+    x = (jnp.arange(w, dtype=height.dtype) - col) * pixel_size
+    y = (row - jnp.arange(h, dtype=height.dtype)) * pixel_size
     xx, yy = jnp.meshgrid(x, y)
     return jnp.stack([xx, yy, height], axis=-1)
+
+
+def _centre(centre, h, w) -> tuple[float, float]:
+    """`surface_points`' `centre` as two floats, checked (None: the image's centre)."""
+    if centre is None:
+        return (h - 1) / 2, (w - 1) / 2
+    try:
+        c = np.asarray(centre, np.float64)
+    except (TypeError, ValueError):
+        c = np.full(1, np.nan)
+    if c.shape != (2,) or not np.all(np.isfinite(c)):
+        raise ValueError(f"centre must be a finite (row, column) pair, got {centre!r}")
+    return float(c[0]), float(c[1])
 
 
 @jax.jit

@@ -19,7 +19,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ..core._status import Status
 from ..integration import integrate
-from ..lights._near import near_light_field, surface_points
+from ..lights._near import _centre, near_light_field, surface_points
 from ._l2 import PSResult
 from ._photometric_stereo import _check_images, photometric_stereo
 
@@ -53,6 +53,7 @@ def near_photometric_stereo(
     mask: Bool[ArrayLike, "H W"] | None = None,
     height0: float | Float[ArrayLike, "H W"] = 0.0,
     pixel_size: float = 1.0,
+    centre: tuple[float, float] | None = None,
     mu: float = 0.0,
     method: str = "l2",
     max_steps: int = 10,
@@ -72,7 +73,9 @@ def near_photometric_stereo(
     - `positions`: `(K, 3)` light positions, in the unit of `pixel_size`.
     - `mask`: `(H, W)` bool object pixels (default all).
     - `height0`: initial height: a scalar (a plane) or `(H, W)`.
-    - `pixel_size`, `mu`: see `surface_points`, `near_light_field`.
+    - `pixel_size`, `centre`, `mu`: see `surface_points`, `near_light_field`. For a crop of
+      the frame the positions were measured in, `centre` is that frame's centre in the crop's
+      pixels (`surface_points`).
     - `method`, `**options`: the per-pixel solver and its options (`photometric_stereo`).
     - `max_steps`, `tol`: outer step limit and height tolerance.
 
@@ -87,6 +90,7 @@ def near_photometric_stereo(
         raise ValueError(f"max_steps must be a positive integer, got {max_steps}")
     if tol is not None and not (np.isfinite(tol) and tol > 0):
         raise ValueError(f"tol must be positive and finite (or None), got {tol}")
+    _centre(centre, h, w)  # a bad centre fails here, before any solve
     if np.shape(height0) not in ((), (h, w)):
         raise ValueError(f"height0 must be a scalar or (H, W) = {(h, w)}, got shape "
                          f"{np.shape(height0)}")
@@ -104,8 +108,8 @@ def near_photometric_stereo(
     changes = []
     converged = False
     for _ in range(int(max_steps)):
-        lights, falloff = near_light_field(positions, surface_points(height, pixel_size=pixel_size),
-                                           mu=mu)
+        lights, falloff = near_light_field(positions, surface_points(height, pixel_size=pixel_size,
+                                                                  centre=centre), mu=mu)
         fall = falloff if images.ndim == 3 else falloff[..., None]
         corrected = images / jnp.maximum(fall, jnp.finfo(dtype).tiny).astype(images.dtype)
         res = photometric_stereo(corrected, lights, mask=mask, method=method, **options)
