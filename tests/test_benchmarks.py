@@ -83,6 +83,12 @@ def test_targets_hold_every_run_to_its_bound_in_the_right_direction():
     assert "| no |" in targets.markdown([numpy_stacks]) and "| yes |" in targets.markdown(
         [aligned])
     assert "| 1 of 2 |" in targets.markdown([k5])
+    # relighting: each run's `mlp` and `mlp_ratio` medians, in turn
+    runs = [{"speed": {"relight": {f"relight_{m}": {"ms_median": v} for m, v in pair}}}
+            for pair in ((("mlp", 5.2), ("mlp_ratio", 4.9)), (("mlp", 4.8), ("mlp_ratio", 4.6)))]
+    (relight,) = targets.rows([], [], [], runs, None, None)
+    assert (relight["values"], relight["met_runs"], relight["bound"]) == ([5.2, 4.9, 4.8, 4.6],
+                                                                          3, "<= 5 ms")
 
 
 def test_target_notes_give_the_bare_kernel_where_a_run_measured_it():
