@@ -351,6 +351,21 @@ def test_reconstruct_with_near_light_positions(tmp_path, capsys):
     assert near["converged"] and near["pixel_size_mm"] == px
     np.testing.assert_allclose(near["positions_mm"], positions, atol=1e-3)
 
+    # several captures in one call: each is solved with the near lamps
+    import shutil
+
+    shutil.copytree(tmp_path / "face", tmp_path / "face2")
+    assert main(["reconstruct", str(tmp_path / "face"), str(tmp_path / "face2"), "--mask",
+                 str(tmp_path / "mask.png"), "--no-register", "--light-positions",
+                 str(tmp_path / "positions.txt"), "--pixel-size", str(px), "--out",
+                 str(tmp_path / "many")]) == 0
+    rows = json.loads((tmp_path / "many" / "summary.json").read_text())["captures"]
+    assert [r["near_converged"] for r in rows] == [True, True] and all(
+        r["near_steps"] >= 1 for r in rows)
+    for name in ("face", "face2"):
+        got = read_normal_map(tmp_path / "many" / name / "normals.png")
+        assert np.median(np.asarray(jaxps.angular_error(got, normals))[inside]) < 1.0
+
     capsys.readouterr()
     positions_file = str(tmp_path / "positions.txt")
     for extra, message in (

@@ -89,7 +89,8 @@ ADDED = {
 # lamps, solved by `near_photometric_stereo`); that entry rewritten again.
 # Issue 17 (near lamps with a face crop): `surface_points` and `near_photometric_stereo` gained
 # `centre` (where the camera axis meets a cropped image) and `Capture` the field `frame_size`
-# (the frame that `crop` is a box of); those three entries rewritten.
+# (the frame that `crop` is a box of); those three entries rewritten. `reconstruct_many` gained
+# `light_positions` and `pixel_size` (near lamps for every capture); its entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

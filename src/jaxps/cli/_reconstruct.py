@@ -375,6 +375,8 @@ def reconstruct_many(
     method: str = "l2",
     check_quality: bool = True,
     progress: bool = True,
+    light_positions=None,
+    pixel_size: float | None = None,
     **load_options,
 ) -> tuple[list[PSResult | None], list[dict]]:
     """Load, check and solve many capture folders, with one progress bar over the captures.
@@ -382,33 +384,58 @@ def reconstruct_many(
     Each folder is loaded with `jaxps.acquisition.load_capture(folder, **load_options)`; with
     `check_quality`, flagged frames are dropped (`drop_flagged`) and named in the summary. A
     capture that cannot be loaded or keeps fewer than 3 frames is reported (`error` column) and
-    its result is None; nothing is skipped silently.
+    its result is None; nothing is skipped silently. `light_positions`, `pixel_size`: near
+    lamps, the same for every capture, as for `reconstruct` (each capture is then solved by
+    `near_photometric_stereo`; the rows gain `near_steps` and `near_converged`).
 
     **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
     `summary_table(rows)` formats the rows.
     """
     from tqdm.auto import tqdm
 
+    positions = None
+    if light_positions is not None or pixel_size is not None:
+        positions = _positions(light_positions, pixel_size, load_options.get("lights"),
+                               load_options.get("yale_names", False),
+                               load_options.get("intensities", "frontal"))
+        load_options["lights"] = positions / np.linalg.norm(positions, axis=1, keepdims=True)
     results, rows = [], []
     bar = tqdm(list(folders), desc="captures", unit="capture", disable=not progress)
     for folder in bar:
         row = {"capture": os.path.basename(os.path.normpath(os.fspath(folder))), "frames": 0,
                "dropped": "", "ok_pixels": 0, "ok_%": 0.0, "error": ""}
+        if positions is not None:
+            row.update(near_steps=0, near_converged=False)
         res = None
         try:
             # the check below (not load_capture's) keeps the reasons for the table
             cap = load_capture(folder, check_quality=False, **load_options)
             if cap.lights is None:
                 raise ValueError("no lights (give lights= or yale_names=True)")
+            if positions is not None:
+                if len(cap.names) != len(positions):
+                    raise ValueError(f"{len(cap.names)} frames but {len(positions)} light "
+                                     "positions")
+                centre = _frame_centre(cap)
+                if load_options.get("intensity_mask") is None:
+                    cap = _near_intensities(cap, positions, pixel_size, centre)
             images, lights, sample_mask = cap.images, cap.lights, ~cap.saturated
+            kept = np.arange(len(images))
             row["frames"] = len(cap.names)
             if check_quality:
                 report = check_frames(images, names=list(cap.names), mask=cap.mask)
                 images, lights, kept = drop_flagged(images, lights, report)
                 sample_mask = sample_mask[kept]
                 row["dropped"] = ", ".join(f"{f.name} ({f.reasons[0]})" for f in report.flagged)
-            res = photometric_stereo(images, lights, mask=cap.mask, sample_mask=sample_mask,
-                                     method=method)
+            if positions is None:
+                res = photometric_stereo(images, lights, mask=cap.mask, sample_mask=sample_mask,
+                                         method=method)
+            else:
+                near = near_photometric_stereo(images, positions[kept], mask=cap.mask,
+                                               pixel_size=pixel_size, centre=centre,
+                                               method=method, sample_mask=sample_mask)
+                res = near.ps
+                row.update(near_steps=int(near.steps), near_converged=bool(near.converged))
             ok = int(np.sum(np.asarray(res.status) == Status.OK))
             row["ok_pixels"] = ok
             row["ok_%"] = 100.0 * ok / max(int(cap.mask.sum()), 1)
@@ -425,8 +452,6 @@ def _run_many(args) -> int:
     `OUT/<folder>/normals.png`, `albedo.png`, `status.npy`, prints a summary table and writes
     `OUT/summary.json` and `OUT/summary.csv` (the table). Returns 1 if any capture failed
     (named in the table), else 0."""
-    if args.light_positions is not None:
-        raise ValueError("--light-positions: near lights take one capture at a time")
     load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
                         mask=args.mask, crop_face=args.crop_face,
                         intensities=args.intensities, register=args.register,
@@ -434,7 +459,9 @@ def _run_many(args) -> int:
                         intensity_normal=args.intensity_normal,
                         intensity_ratios=args.intensity_ratios)
     results, rows = reconstruct_many(args.frames, method=args.method,
-                                     check_quality=args.check_quality, **load_options)
+                                     check_quality=args.check_quality,
+                                     light_positions=args.light_positions,
+                                     pixel_size=args.pixel_size, **load_options)
     os.makedirs(args.out, exist_ok=True)
     for folder, res, row in zip(args.frames, results, rows):
         if res is None:
