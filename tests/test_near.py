@@ -103,8 +103,8 @@ def test_crop_with_frame_centre_keeps_the_lights():
                                             height0=float(height_mm[mask].mean()),
                                             pixel_size=PIXEL_MM, centre=c, max_steps=8)
         errors[name] = angular_stats(res.ps.normals, normals, mask=mask)["mean_deg"]
-    # Measured: 0.16 (frame centre) and 29.8 deg (crop centre: the face sits 270 mm off the
-    # axis, with the lamps 400 mm away).
+    # Measured: 0.16 (frame centre) and 29.8 deg (crop centre: the face's centre sits 35.5
+    # columns, 106 mm, right of the axis, with the lamps 400 mm away).
     assert errors["frame centre"] < 0.5 and errors["crop centre"] > 2.0, errors
     for bad in ((1.0,), (np.nan, 2.0), "middle"):
         with pytest.raises(ValueError, match="centre must be a finite"):
