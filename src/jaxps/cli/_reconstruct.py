@@ -18,6 +18,7 @@ from ..acquisition import check_frames, drop_flagged, list_frames, load_capture
 from ..acquisition._capture import _kept
 from ..core import Status, status_counts
 from ..integration import integrate
+from ..lights import near_light_field, surface_points
 from ..lights._directions import _read_xyz
 from ..ps import PSResult, near_photometric_stereo, photometric_stereo
 from ..report._mesh import write_meshes
@@ -270,8 +271,6 @@ def _near_intensities(cap, positions, pixel_size, centre):
     then be divided out twice, once here and once by `near_photometric_stereo`. So the
     estimates are divided by the mean over the mask, on the plane $z = 0$, of $a_k$
     (`"mean"`) or $a_k\\, l_{k,z}$ (`"frontal"`) instead."""
-    from ..lights import near_light_field, surface_points
-
     if cap.intensity_method not in ("mean", "frontal"):
         return cap
     points = surface_points(np.zeros(cap.mask.shape, np.float32), pixel_size=pixel_size,
@@ -412,10 +411,7 @@ def reconstruct_many(
             cap = load_capture(folder, check_quality=False, **load_options)
             if cap.lights is None:
                 raise ValueError("no lights (give lights= or yale_names=True)")
-            if positions is not None:
-                if len(cap.names) != len(positions):
-                    raise ValueError(f"{len(cap.names)} frames but {len(positions)} light "
-                                     "positions")
+            if positions is not None:  # load_capture has matched the frames to the lamps
                 centre = _frame_centre(cap)
                 if load_options.get("intensity_mask") is None:
                     cap = _near_intensities(cap, positions, pixel_size, centre)
