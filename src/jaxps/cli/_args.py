@@ -151,7 +151,7 @@ def relight_parser(sub) -> None:
         "relight.json (fit report) to --out.",
     )
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
-    add_light_args(p)
+    add_light_args(p, near=True)
     p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
     p.add_argument("--method", default="wrap_ggx",
                    help="BRDF model (jaxps.BRDF_METHODS; default wrap_ggx, see docs/brdf.md)")

@@ -121,12 +121,8 @@ def reconstruct(
 
         near = None
         if positions is not None:
-            given = [os.path.basename(p) for p in (
-                list_frames(frames) if isinstance(frames, (str, os.PathLike)) else frames)]
-            near_positions = positions[_kept(given, cap.names)]  # the frames the checks kept
-            centre = _frame_centre(cap)
-            if intensity_mask is None:
-                cap = _near_intensities(cap, near_positions, pixel_size, centre)
+            near_positions, centre, cap = _near_capture(frames, cap, positions, pixel_size,
+                                                        intensity_mask)
 
         def solve():
             nonlocal near
@@ -175,11 +171,7 @@ def reconstruct(
         "note": "timings include JIT compilation on the first call",
     }
     if near is not None:
-        summary["near_lights"] = {
-            "positions_mm": near_positions.round(3).tolist(), "pixel_size_mm": pixel_size,
-            "centre_px": None if centre is None else [round(v, 3) for v in centre],
-            "steps": int(near.steps), "converged": bool(near.converged),
-            "height_changes_mm": np.asarray(near.changes).round(4).tolist()}
+        summary["near_lights"] = _near_summary(near, near_positions, pixel_size, centre)
     if report:
         from ..report import lambertian_check_plot, write_report  # matplotlib: only when asked
 
@@ -249,6 +241,29 @@ def _positions(light_positions, pixel_size, lights, yale_names, intensities) -> 
         raise ValueError(f"light_positions{where}: every lamp must be finite and in front of "
                          "the subject (z > 0)")
     return positions
+
+
+def _near_capture(frames, cap, positions, pixel_size, intensity_mask):
+    """`(positions, centre, cap)` for near lamps: the positions of the frames `cap` kept (the
+    quality checks may drop some), the frame's centre in `cap`'s crop (`_frame_centre`), and
+    `cap` with its flash strengths re-estimated for the lamps (`_near_intensities`) unless a
+    reference target measured them."""
+    given = [os.path.basename(p) for p in (
+        list_frames(frames) if isinstance(frames, (str, os.PathLike)) else frames)]
+    positions = positions[_kept(given, cap.names)]
+    centre = _frame_centre(cap)
+    if intensity_mask is None:
+        cap = _near_intensities(cap, positions, pixel_size, centre)
+    return positions, centre, cap
+
+
+def _near_summary(near, positions, pixel_size, centre) -> dict:
+    """The summary's `"near_lights"`: the lamps, the centre and `near_photometric_stereo`'s
+    steps."""
+    return {"positions_mm": positions.round(3).tolist(), "pixel_size_mm": pixel_size,
+            "centre_px": None if centre is None else [round(v, 3) for v in centre],
+            "steps": int(near.steps), "converged": bool(near.converged),
+            "height_changes_mm": np.asarray(near.changes).round(4).tolist()}
 
 
 def _frame_centre(cap) -> tuple[float, float] | None:

@@ -14,10 +14,17 @@ import numpy as np
 
 from ..acquisition import load_capture
 from ..lights import lights_from_angles
-from ..ps import photometric_stereo
+from ..ps import near_photometric_stereo, photometric_stereo
 from ..reflectance import fit_brdf, relight
 from ..report._writers import write_json
-from ._reconstruct import _card_line, _intensities, _motion
+from ._reconstruct import (
+    _card_line,
+    _intensities,
+    _motion,
+    _near_capture,
+    _near_summary,
+    _positions,
+)
 
 __all__ = ["circle_lights", "relight_capture", "run"]
 
@@ -55,6 +62,8 @@ def relight_capture(
     intensity_mask=None,
     intensity_normal=None,
     intensity_ratios=None,
+    light_positions=None,
+    pixel_size: float | None = None,
 ) -> dict:
     """Fit `method` to a capture and write relit PNGs, `relight.gif` and `relight.json` to `out`.
 
@@ -76,6 +85,13 @@ def relight_capture(
     - `intensities`, `intensity_mask`, `intensity_normal`, `intensity_ratios`: each frame's
       flash strength, as for `load_capture` (`"intensities"` in the summary, as
       `jaxps reconstruct` writes it).
+    - `light_positions`, `pixel_size`: near lamps, as for `jaxps reconstruct` (millimetres,
+      origin at the frame's centre at the subject's mean depth; `lights` is then not given).
+      The frames are solved by `near_photometric_stereo`, and the BRDF is fitted with each
+      pixel's own light directions and the fall-off divided out (`fit_brdf` with
+      `NearResult.lights`; `"auto"` is refused there). The new lights stay distant: a relit
+      image shows the face under a distant light as bright as a lamp is at the origin.
+      `relight.json` holds `"near_lights"`.
 
     **Returns:** the summary written to `relight.json` (fit report, files, timings).
     """
@@ -88,6 +104,13 @@ def relight_capture(
         raise ValueError(f"circle_frames must be >= 1, got {circle_frames}")
     if not 0 <= circle_zenith_deg < 90:
         raise ValueError(f"circle_zenith_deg must be in [0, 90), got {circle_zenith_deg}")
+    positions = None
+    if light_positions is not None or pixel_size is not None:
+        positions = _positions(light_positions, pixel_size, lights, yale_names, intensities)
+        if method == "auto":
+            raise ValueError("method='auto' (--method) relights under the training lights as "
+                             "distant lights; with light_positions choose a method")
+        lights = positions / np.linalg.norm(positions, axis=1, keepdims=True)
     times = {}
     t = time.perf_counter()
     cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask,
@@ -96,14 +119,29 @@ def relight_capture(
                        intensity_ratios=intensity_ratios)
     if cap.lights is None:
         raise ValueError("no lights: give --lights FILE or --yale-names")
+    if positions is not None:
+        positions, centre, cap = _near_capture(frames, cap, positions, pixel_size,
+                                               intensity_mask)
     images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
     times["load"] = time.perf_counter() - t
 
     t = time.perf_counter()
-    ps = photometric_stereo(images, cap.lights, mask=cap.mask, sample_mask=~cap.saturated)
+    near = None
+    if positions is None:
+        ps = photometric_stereo(images, cap.lights, mask=cap.mask, sample_mask=~cap.saturated)
+        fit_images, fit_lights = images, cap.lights
+    else:
+        near = near_photometric_stereo(images, positions, mask=cap.mask, pixel_size=pixel_size,
+                                       centre=centre, sample_mask=~cap.saturated)
+        ps = near.ps
+        # each sample as a unit-strength lamp at the pixel's own direction would give it; a
+        # saturated one is left out (NaN) rather than brought below the saturation level
+        fit_images = np.where(cap.saturated, np.nan, images / np.asarray(near.falloff))
+        fit_lights = near.lights
     fit_mask = cap.mask & (np.asarray(ps.status) == 0)
-    model = fit_brdf(images, ps.normals, ps.albedo, cap.lights, mask=fit_mask, method=method,
-                     key=jax.random.key(seed), n_samples=n_samples, max_steps=max_steps)
+    model = fit_brdf(fit_images, ps.normals, ps.albedo, fit_lights, mask=fit_mask,
+                     method=method, key=jax.random.key(seed), n_samples=n_samples,
+                     max_steps=max_steps)
     times["fit"] = time.perf_counter() - t
 
     os.makedirs(out, exist_ok=True)
@@ -138,6 +176,8 @@ def relight_capture(
         "timings_s": {k: round(v, 3) for k, v in times.items()},
         "note": "timings include JIT compilation",
     }
+    if near is not None:
+        summary["near_lights"] = _near_summary(near, positions, pixel_size, centre)
     write_json(os.path.join(out, "relight.json"), json.loads(json.dumps(summary)))
     return summary
 
@@ -156,7 +196,8 @@ def run(args) -> int:
         n_samples=args.samples, max_steps=args.max_steps, seed=args.seed,
         check_quality=args.check_quality, register=args.register,
         intensities=args.intensities, intensity_mask=args.intensity_mask,
-        intensity_normal=args.intensity_normal, intensity_ratios=args.intensity_ratios)
+        intensity_normal=args.intensity_normal, intensity_ratios=args.intensity_ratios,
+        light_positions=args.light_positions, pixel_size=args.pixel_size)
     if s["dropped_frames"]:
         print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
     if "target" in s["intensities"]:

@@ -344,7 +344,8 @@ def _check_inputs(images, normals, albedo, lights, mask):
     dtype = images.dtype
     normals = _check_normals(normals, (h, w), dtype)
     albedo = _check_albedo(albedo, (h, w), dtype)
-    lights = _check_lights(lights, dtype)
+    lights = (_check_pixel_lights(lights, (h, w), dtype) if np.ndim(lights) == 4
+              else _check_lights(lights, dtype))
     if lights.shape[0] != k:
         raise ValueError(f"images have K={k} frames but lights have {lights.shape[0]} rows")
     if mask is None:
@@ -370,6 +371,27 @@ def _check_albedo(albedo, hw, dtype):
     if albedo.shape != hw:
         raise ValueError(f"albedo must be (H, W) = {hw}, got {albedo.shape}")
     return albedo
+
+
+def _check_pixel_lights(lights, hw, dtype):
+    """`(K, H, W, 3)` per-pixel lights (near lamps) as unit vectors on the host, checked as
+    `_check_lights` checks distant ones."""
+    lights = np.asarray(lights, np.float64)
+    if lights.shape[1:] != (*hw, 3):
+        raise ValueError(f"per-pixel lights must be (K, H, W, 3) with (H, W) = {hw}, got shape "
+                         f"{lights.shape}")
+    if not np.all(np.isfinite(lights)):
+        raise ValueError("lights contain NaN or Inf")
+    norms = np.linalg.norm(lights, axis=-1, keepdims=True)
+    if np.any(norms < 1e-8):
+        raise ValueError("lights contain zero vectors")
+    lights = lights / norms
+    below = np.flatnonzero((lights[..., 2] <= 0).any(axis=(1, 2)))
+    if below.size:
+        raise ValueError(
+            f"lights {below.tolist()} are at or below the horizon (l_z <= 0) at some pixel: a "
+            "light behind the image plane cannot light the visible surface")
+    return lights.astype(dtype)
 
 
 def _check_lights(lights, dtype):
@@ -403,7 +425,7 @@ def fit_brdf(
     images: Float[ArrayLike, "K H W"],
     normals: Float[ArrayLike, "H W 3"],
     albedo: Float[ArrayLike, "H W"],
-    lights: Float[ArrayLike, "K 3"],
+    lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "K H W 3"],
     *,
     mask: Bool[ArrayLike, "H W"] | None = None,
     method: str = "wrap_ggx",
@@ -433,7 +455,11 @@ def fit_brdf(
     - `images`: `(K, H, W)` grey, floating, linear (ambient subtracted).
     - `normals`: `(H, W, 3)` unit normals, `albedo`: `(H, W)` (e.g. from
       `jaxps.photometric_stereo` on the same images), in the images' units.
-    - `lights`: `(K, 3)` directions toward the lights, above the horizon (l_z > 0).
+    - `lights`: `(K, 3)` directions toward the lights, above the horizon (l_z > 0), or
+      `(K, H, W, 3)` per pixel, for near lamps (`NearResult.lights` of
+      `jaxps.near_photometric_stereo`, with `images` divided by its `falloff`). Per-pixel
+      lights work with every method but `"auto"` and `shrink="loo"`, whose folds relight under
+      distant training lights.
     - `mask`: `(H, W)` bool, pixels to learn from (default all; must not be empty).
     - `method`: `"wrap_ggx"` (the default: wrap diffuse + GGX lobe, normals refined jointly;
       the only model below Lambert's law on held-out lights on all five shared Yale B faces,
@@ -514,6 +540,10 @@ def fit_brdf(
         raise ValueError("shrink='loo' scales the correction to Lambert's law: it needs "
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
+    if lights.ndim == 4 and (method == "auto" or shrink is not None):
+        raise ValueError(f"{'method=auto' if method == 'auto' else 'shrink=loo'} relights "
+                         "under the training lights as distant lights: it needs (K, 3) lights, "
+                         "got per-pixel (K, H, W, 3) ones")
     if int(n_samples) < images.shape[0]:  # n_samples // K pixels are drawn
         raise ValueError(f"n_samples must be at least K = {images.shape[0]} (one pixel per "
                          f"light), got {n_samples!r}")

@@ -72,6 +72,7 @@ def _angles_elementwise(normals, lights):
     The same definitions and guards as `_sample_angles` with view (0, 0, 1), written on whole
     arrays: $n \\times v = (n_y, -n_x, 0)$, $n \\cdot v = n_z$, and the tangent-plane projections
     $l_t = l - (n \\cdot l) n$, $v_t = v - n_z n$. Normals and lights are normalised here.
+    `lights`: `(K, 3)` distant, or `(K, P, 3)` per pixel (near lamps).
     """
     dtype = normals.dtype
     # (1, P) planes read in place: a transpose to (3, P) would be a pass of its own
@@ -79,7 +80,10 @@ def _angles_elementwise(normals, lights):
     inv = 1 / jnp.maximum(jnp.sqrt(nx * nx + ny * ny + nz * nz), jnp.asarray(1e-12, dtype))
     nx, ny, nz = nx * inv, ny * inv, nz * inv
     lights = lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
-    lx, ly, lz = lights[:, 0:1], lights[:, 1:2], lights[:, 2:3]  # (K, 1)
+    if lights.ndim == 2:
+        lx, ly, lz = lights[:, 0:1], lights[:, 1:2], lights[:, 2:3]  # (K, 1)
+    else:
+        lx, ly, lz = lights[..., 0], lights[..., 1], lights[..., 2]  # (K, P)
     ndl = nx * lx + ny * ly + nz * lz
     theta_i = _angle_elementwise(ny * lz - nz * ly, nz * lx - nx * lz, nx * ly - ny * lx, ndl)
     theta_r = _angle_elementwise(ny, -nx, jnp.zeros_like(nx), nz)
@@ -119,13 +123,14 @@ def pixel_coordinates(h: int, w: int, dtype=jnp.float32) -> Float[Array, "H W 2"
 
 def brdf_features(
     normals: Float[ArrayLike, "H W 3"],
-    lights: Float[ArrayLike, "K 3"],
+    lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "K H W 3"],
 ) -> Float[Array, "K H W 5"]:
     """The per-sample BRDF coordinates (θi, θr, Δα, x, y) of every pixel under every light.
 
     **Arguments:**
     - `normals`: `(H, W, 3)` unit normals in the camera frame (normalised here).
-    - `lights`: `(K, 3)` directions toward distant lights (normalised here).
+    - `lights`: `(K, 3)` directions toward distant lights, or `(K, H, W, 3)` per pixel (near
+      lamps, e.g. `NearResult.lights`); normalised here.
 
     **Returns:** `(K, H, W, 5)` features in the dtype of `normals`, ordered as
     `jaxps.FEATURE_NAMES`: angles in radians, x and y in [-1, 1] (see the module docstring for
@@ -137,8 +142,10 @@ def brdf_features(
     if normals.ndim != 3 or normals.shape[-1] != 3:
         raise ValueError(f"normals must be (H, W, 3), got shape {normals.shape}")
     lights = jnp.asarray(lights, normals.dtype)
-    if lights.ndim != 2 or lights.shape[-1] != 3:
-        raise ValueError(f"lights must be (K, 3), got shape {lights.shape}")
+    if not (lights.ndim == 2 and lights.shape[-1] == 3
+            or lights.shape[1:] == normals.shape and lights.ndim == 4):
+        raise ValueError(f"lights must be (K, 3) or (K, H, W, 3) with the normals' (H, W) = "
+                         f"{normals.shape[:2]}, got shape {lights.shape}")
     return _features(normals, lights)
 
 
@@ -146,6 +153,8 @@ def brdf_features(
 def _features(normals, lights):
     h, w, _ = normals.shape
     k = lights.shape[0]
+    if lights.ndim == 4:  # per pixel: (K, P, 3)
+        lights = lights.reshape(k, h * w, 3)
     theta_i, theta_r, delta, _ = _angles_elementwise(normals, lights)
     angles = jnp.stack([theta_i, jnp.broadcast_to(theta_r, theta_i.shape), delta], axis=-1)
     xy = jnp.broadcast_to(pixel_coordinates(h, w, normals.dtype), (k, h, w, 2))

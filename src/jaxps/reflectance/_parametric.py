@@ -121,10 +121,21 @@ def _from_bounded(x, name):
     return math.log(u / (1 - u))
 
 
+def _col(a, j):
+    """Component `j` of `(K, 3)` distant lights as `(K, 1)`, of `(K, P, 3)` per-pixel ones as
+    `(K, P)`: either broadcasts against `(1, P)` planes of the normals."""
+    return a[:, j][:, None] if a.ndim == 2 else a[..., j]
+
+
+def _view(lights):
+    """The view direction (0, 0, 1), shaped to add to `lights` (`(..., 3)`)."""
+    return jnp.asarray([0, 0, 1], lights.dtype).reshape((1,) * (lights.ndim - 1) + (3,))
+
+
 def _terms(diffuse, specular, shape, normals, lights):
-    """Diffuse and specular shading `(K, P)` for `(P, 3)` normals, `(K, 3)` lights and the
-    bounded `shape` (2,)."""
-    col = lambda a, j: a[:, j][:, None]
+    """Diffuse and specular shading `(K, P)` for `(P, 3)` normals, `(K, 3)` distant or
+    `(K, P, 3)` per-pixel lights and the bounded `shape` (2,)."""
+    col = _col
     nx, ny, nz = (normals[:, j][None] for j in range(3))  # (1, P)
     cos_i = col(lights, 0) * nx + col(lights, 1) * ny + col(lights, 2) * nz
     cos_r = jnp.clip(nz, 1e-4, 1)
@@ -136,8 +147,8 @@ def _terms(diffuse, specular, shape, normals, lights):
         d = _shading(cos_i, cos_r, col(lights, 2) - cos_i * cos_r, shape[0] ** 2)
     if specular is None:
         return d, jnp.zeros_like(d)
-    half = lights + jnp.asarray([[0, 0, 1]], lights.dtype)
-    half = half / jnp.linalg.norm(half, axis=1, keepdims=True)
+    half = lights + _view(lights)
+    half = half / jnp.linalg.norm(half, axis=-1, keepdims=True)
     cos_h = jnp.clip(col(half, 0) * nx + col(half, 1) * ny + col(half, 2) * nz, 0, 1)
     lit = cos_i > 0
     if specular == "blinn_phong":
@@ -151,7 +162,7 @@ def _terms(diffuse, specular, shape, normals, lights):
         return 2 * c / (c + jnp.sqrt(a2 + (1 - a2) * c**2))
 
     ci = jnp.clip(cos_i, 1e-4, 1)
-    cos_d = jnp.sum(lights * half, axis=1, keepdims=True)  # l.h, (K, 1)
+    cos_d = sum(col(lights, j) * col(half, j) for j in range(3))  # l.h, (K, 1) or (K, P)
     fresnel = 1 + (1 / F0_SKIN - 1) * (1 - cos_d) ** 5  # Schlick's F / F0
     s = ndf * g1(ci) * g1(cos_r) * fresnel / (4 * cos_r)
     return d, jnp.where(lit, s, 0)
@@ -219,8 +230,12 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     normals = np.asarray(normals).reshape(-1, 3)
     pix = np.flatnonzero(np.asarray(mask).reshape(-1) & usable.any(0).reshape(-1))
 
+    lights = np.asarray(lights)
+    per_pixel = lights.ndim == 4  # (K, H, W, 3) near lamps: each pixel's own directions
+
     def data_of(sel):
-        return (normals[sel], lights, images.reshape(k, -1)[:, sel],
+        return (normals[sel], lights.reshape(k, -1, 3)[:, sel] if per_pixel else lights,
+                images.reshape(k, -1)[:, sel],
                 usable.reshape(k, -1)[:, sel].astype(dtype),
                 region_map.reshape(-1)[sel].astype(np.int32))
 
@@ -266,7 +281,7 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
     if method.endswith("_residual"):
         data = data_of(train)
         base, _, rho_d_train, _, _ = stored_call(_predict_jit, value, data, **static)
-        u = _half_diff(data[0], lights)
+        u = _half_diff(data[0], data[1])
         box = jnp.stack([jnp.min(u, axis=(0, 1)), jnp.max(u, axis=(0, 1))])
         mlp = _init_residual(key, dtype)
         flat, unravel = ravel_pytree(mlp)
@@ -278,7 +293,7 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
         message += "; residual MLP: " + ("converged" if res.result == optx.RESULTS.successful
                                          else str(res.result).split("<", 1)[-1].rstrip(">"))
         params = params._replace(residual=unravel(res.value), box=box)
-        u_all = _half_diff(normals.reshape(-1, 3)[pix], lights)
+        u_all = _half_diff(normals.reshape(-1, 3)[pix], data_of(pix)[1])
         amp_all = RESIDUAL_BOUND * gains[:, None] * rho_d[None]
         pred = pred + amp_all * jnp.tanh(_mlp(params.residual, _scaled(u_all, box)))
     lobe_params = 0 if specular is None else 1 + np.unique(region_map.reshape(-1)[pix]).size
@@ -289,13 +304,15 @@ def fit(images, normals, albedo, lights, mask, usable, *, method, key, n_samples
 
 def _half_diff(normals, lights):
     """Rusinkiewicz (1998)'s half/difference angles (θh, θd, φd) `(K, P, 3)` for `(P, 3)`
-    normals and `(K, 3)` lights, view (0, 0, 1): θh between n and h, θd between l and h, φd
-    the azimuth of l about h from the plane of n and h (isotropic, in [0, π])."""
-    half = lights + jnp.asarray([[0, 0, 1]], lights.dtype)
-    half = half / jnp.linalg.norm(half, axis=1, keepdims=True)  # (K, 3)
-    n, l, hv = normals[None], lights[:, None], half[:, None]  # (1, P, 3), (K, 1, 3), (K, 1, 3)
+    normals and `(K, 3)` distant or `(K, P, 3)` per-pixel lights, view (0, 0, 1): θh between n
+    and h, θd between l and h, φd the azimuth of l about h from the plane of n and h
+    (isotropic, in [0, π])."""
+    l = lights[:, None] if lights.ndim == 2 else lights  # (K, 1, 3) or (K, P, 3)
+    hv = l + _view(l)
+    hv = hv / jnp.linalg.norm(hv, axis=-1, keepdims=True)
+    n = normals[None]  # (1, P, 3)
     cos_h = jnp.sum(n * hv, -1)  # (K, P)
-    cos_d = jnp.sum(l * hv, -1)  # (K, 1)
+    cos_d = jnp.sum(l * hv, -1)  # (K, 1) or (K, P)
     n_perp = n - cos_h[..., None] * hv
     l_perp = l - cos_d[..., None] * hv
     dot = jnp.sum(n_perp * l_perp, -1)
@@ -350,29 +367,31 @@ def _refine(p, data, diffuse, specular, n_regions, fit_gains, steps=8):
         n = n0 + jnp.stack([ab[0], ab[1], jnp.zeros((), ab.dtype)])
         return n / jnp.linalg.norm(n)
 
-    def resid(ab, n0, yp, wp, rs):
-        d, s = _terms(diffuse, specular, shape, normal(n0, ab)[None], lights)
+    def resid(ab, n0, yp, wp, rs, lp):
+        d, s = _terms(diffuse, specular, shape, normal(n0, ab)[None], lp)
         d, s = (gains[:, None] * d)[:, 0], (gains[:, None] * s)[:, 0]
         rd = jnp.maximum(jnp.sum(wp * d * (yp - rs * s)) / jnp.maximum(jnp.sum(wp * d * d),
                                                                       1e-12), 0)
         return wp * (yp - rd * d - rs * s)
 
-    def one(n0, yp, wp, rs):
+    def one(n0, yp, wp, rs, lp):
         def step(_, state):  # a loop, not unrolled: 8 unrolled steps took 2.3 s to compile
             ab, lam = state
-            r = resid(ab, n0, yp, wp, rs)
-            jac = jax.jacfwd(resid)(ab, n0, yp, wp, rs)
+            r = resid(ab, n0, yp, wp, rs, lp)
+            jac = jax.jacfwd(resid)(ab, n0, yp, wp, rs, lp)
             a = jac.T @ jac
             a = a + lam * jnp.diag(jnp.diag(a)) + 1e-9 * jnp.eye(2, dtype=a.dtype)
             delta = -jnp.linalg.solve(a, jac.T @ r)
             delta = delta * jnp.minimum(1, 0.2 / jnp.maximum(jnp.linalg.norm(delta), 1e-12))
-            better = jnp.sum(resid(ab + delta, n0, yp, wp, rs) ** 2) < jnp.sum(r**2)
+            better = jnp.sum(resid(ab + delta, n0, yp, wp, rs, lp) ** 2) < jnp.sum(r**2)
             return jnp.where(better, ab + delta, ab), jnp.where(better, lam * 0.3, lam * 10)
 
         start = (jnp.zeros((2,), n0.dtype), jnp.asarray(1e-3, n0.dtype))
         return normal(n0, jax.lax.fori_loop(0, steps, step, start)[0])
 
-    return jax.vmap(one, in_axes=(0, 1, 1, 0))(normals, y, w, rho_s)
+    # per-pixel lights (K, P, 3) are mapped with their pixel, distant ones (K, 3) shared
+    return jax.vmap(one, in_axes=(0, 1, 1, 0, None if lights.ndim == 2 else 1))(
+        normals, y, w, rho_s, lights)
 
 
 _STATIC_NAMES = ("diffuse", "specular", "n_regions", "fit_gains")
