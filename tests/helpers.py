@@ -156,3 +156,40 @@ def yale_frames_with_card(frames, ambient, strengths, out):
     mask_path = out / "card.png"
     cv2.imwrite(str(mask_path), card.astype(np.uint8) * 255)
     return paths, ambient_path, card, mask_path
+
+
+def near_face(px=2.0, h=96):
+    """The synthetic face (its mean depth at z = 0) under five lamps 1000 mm away, in the
+    directions of `scanner_lights(20)` from the origin: `(normals, mask, directions, falloff,
+    lights)`, the lamps' per-pixel unit directions `(K, H, W, 3)` and fall-off `(K, H, W)`
+    (numpy float64) and their directions from the origin `(K, 3)`."""
+    import jax.numpy as jnp
+
+    face = jaxps.synthetic.face_like(h)
+    inside = np.asarray(face.mask)
+    depth = np.asarray(face.height, np.float64) * px
+    points = jaxps.surface_points(jnp.asarray(depth - depth[inside].mean(), jnp.float32),
+                                  pixel_size=px)
+    lights = np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
+    directions, falloff = (np.asarray(a, np.float64)
+                           for a in jaxps.near_light_field(1000.0 * lights, points))
+    return np.asarray(face.normals, np.float64), inside, directions, falloff, lights
+
+
+def near_face_files(folder, px=2.0):
+    """`near_face` as a Lambertian capture (albedo 0.6) in `folder`: 16-bit PNG frames in
+    `face/`, `mask.png`, `positions.txt` (the lamps in mm, with a comment and a count line)
+    and `lights.txt` (their directions from the origin). Returns `near_face`'s tuple."""
+    import cv2
+
+    normals, inside, directions, falloff, lights = face = near_face(px)
+    frames = np.maximum(np.einsum("khwc,hwc->khw", directions, normals), 0) * falloff * 0.6
+    (folder / "face").mkdir()
+    for k, frame in enumerate(frames * inside):
+        cv2.imwrite(str(folder / "face" / f"f{k}.png"),
+                    np.round(np.clip(frame, 0, 1) * 65535).astype(np.uint16))
+    cv2.imwrite(str(folder / "mask.png"), inside.astype(np.uint8) * 255)
+    (folder / "positions.txt").write_text(
+        "# lamps, mm\n5\n" + "".join(f"{x} {y} {z}\n" for x, y, z in 1000.0 * lights))
+    jaxps.save_lights(folder / "lights.txt", lights)
+    return face

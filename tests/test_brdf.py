@@ -899,21 +899,6 @@ def test_auto_on_yale_falls_back_to_lambert(data):
 # ------------------------------------------------------------------------ near lamps (per pixel)
 
 
-def near_face(px=2.0, h=96):
-    """The synthetic face with five lamps 1000 mm away (scanner_lights(20) directions from the
-    origin): normals, mask, the lamps' per-pixel unit directions `(K, H, W, 3)` and fall-off
-    `(K, H, W)` (numpy float64), and the directions from the origin `(K, 3)`."""
-    face = jaxps.synthetic.face_like(h)
-    inside = np.asarray(face.mask)
-    depth = np.asarray(face.height, np.float64) * px
-    points = jaxps.surface_points(jnp.asarray(depth - depth[inside].mean(), jnp.float32),
-                                  pixel_size=px)
-    lights = np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
-    directions, falloff = (np.asarray(a, np.float64)
-                           for a in jaxps.near_light_field(1000.0 * lights, points))
-    return np.asarray(face.normals, np.float64), inside, directions, falloff, lights
-
-
 def test_fit_brdf_per_pixel_lights_equal_shared_ones_when_broadcast(scene):
     """`(K, H, W, 3)` lights that repeat the `(K, 3)` ones at every pixel give the same fit and
     the same relit image, for a closed form, an MLP and the default parametric model (whose
@@ -939,6 +924,8 @@ def test_fit_brdf_with_near_lamps_recovers_the_wrap_parameter():
     each pixel's own light directions the fit recovers w and the relit image exactly; with
     the lamps' directions from the origin, as distant lights, it does not (not the shared
     data; true normals and albedo given)."""
+    from helpers import near_face
+
     normals, inside, directions, _, lights = near_face()
     albedo = np.full(inside.shape, 0.6)
     wrap = 0.3
@@ -992,20 +979,12 @@ def test_cli_relight_with_near_light_positions(tmp_path, capsys):
     import json
 
     import cv2
+    from helpers import near_face_files
 
     from jaxps.cli import main
 
-    normals, inside, directions, falloff, lights = near_face()
     px = 2.0
-    frames = np.maximum(np.einsum("khwc,hwc->khw", directions, normals), 0) * falloff * 0.6
-    (tmp_path / "face").mkdir()
-    for k, frame in enumerate(frames * inside):
-        cv2.imwrite(str(tmp_path / "face" / f"f{k}.png"),
-                    np.round(np.clip(frame, 0, 1) * 65535).astype(np.uint16))
-    cv2.imwrite(str(tmp_path / "mask.png"), inside.astype(np.uint8) * 255)
-    (tmp_path / "positions.txt").write_text(
-        "".join(f"{x} {y} {z}\n" for x, y, z in 1000.0 * lights))
-    jaxps.save_lights(tmp_path / "lights.txt", lights)
+    normals, inside, _, _, _ = near_face_files(tmp_path, px)
     new = np.asarray(jaxps.lights_from_angles([30.0], [10.0]), np.float64)[0]
     truth = 0.6 * np.maximum(normals @ new, 0)
     base = ["relight", str(tmp_path / "face"), "--mask", str(tmp_path / "mask.png"),

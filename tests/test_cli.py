@@ -314,29 +314,11 @@ def test_reconstruct_with_near_light_positions(tmp_path, capsys):
     """A rig whose lamps stand a metre from the face: `--light-positions` (mm) and
     `--pixel-size` solve it with `near_photometric_stereo`, where the lamps' directions from
     the origin, as distant lights, leave several degrees (not the shared data)."""
-    import cv2
-    import jax.numpy as jnp
+    from helpers import near_face_files
 
-    h, px = 96, 2.0
-    face = jaxps.synthetic.face_like(h)
-    inside = np.asarray(face.mask)
-    normals = np.asarray(face.normals, np.float64)
-    depth = np.asarray(face.height, np.float64) * px
-    points = np.asarray(jaxps.surface_points(jnp.asarray(depth - depth[inside].mean(),
-                                                         jnp.float32), pixel_size=px))
-    lights = np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
+    px = 2.0
+    normals, inside, _, _, lights = near_face_files(tmp_path, px)
     positions = 1000.0 * lights
-    directions, falloff = (np.asarray(a, np.float64) for a in
-                           jaxps.near_light_field(positions, jnp.asarray(points)))
-    frames = np.maximum(np.einsum("khwc,hwc->khw", directions, normals), 0) * falloff * 0.6
-    (tmp_path / "face").mkdir()
-    for k, frame in enumerate(frames * inside):
-        cv2.imwrite(str(tmp_path / "face" / f"f{k}.png"),
-                    np.round(np.clip(frame, 0, 1) * 65535).astype(np.uint16))
-    cv2.imwrite(str(tmp_path / "mask.png"), inside.astype(np.uint8) * 255)
-    (tmp_path / "positions.txt").write_text(
-        "# lamps, mm\n5\n" + "".join(f"{x} {y} {z}\n" for x, y, z in positions))
-    jaxps.save_lights(tmp_path / "lights.txt", lights)
     base = ["reconstruct", str(tmp_path / "face"), "--mask", str(tmp_path / "mask.png"),
             "--no-register"]
     median = {}
