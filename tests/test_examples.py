@@ -12,6 +12,7 @@ NEEDS_DATA = {"tutorial_yaleb.py", "icp_diligent.py"}
 OUTPUTS = {
     "quickstart.py": ["quickstart_error.png"],
     "calibrate_lights.py": ["calibrate_lights.png"],
+    "near_lamps.py": ["near_lamps.png"],
     "tutorial_yaleb.py": ["tutorial_yaleb.png"],
     "icp_diligent.py": ["icp_bear.png"],
     "report_demo.py": ["run/report.html", "run/report_files/normal_error_maps.png"],
