@@ -193,3 +193,38 @@ def near_face_files(folder, px=2.0):
         "# lamps, mm\n5\n" + "".join(f"{x} {y} {z}\n" for x, y, z in 1000.0 * lights))
     jaxps.save_lights(folder / "lights.txt", lights)
     return face
+
+
+def off_centre_face_files(folder, px=2.0):
+    """A Lambertian face (albedo 0.6) off the camera axis in a larger frame, under five lamps
+    1000 mm away (`scanner_lights(20)` directions from the frame's centre): the 96-pixel face's
+    box has its top-left corner at (60, 150) in a 192 x 256 frame, so its centre sits 60
+    columns right of and 12 rows below the frame's. Writes 16-bit PNG frames in `face/`,
+    `mask.png` (the whole frame's) and `positions.txt` (mm). Returns `(normals of the face,
+    the frame's mask, (H0, W0), (top, left, h, w) of the face's box)`."""
+    import cv2
+    import jax.numpy as jnp
+
+    face = jaxps.synthetic.face_like(96)
+    inside = np.asarray(face.mask)
+    normals = np.asarray(face.normals, np.float64)
+    depth = np.asarray(face.height, np.float64) * px
+    depth = depth - depth[inside].mean()
+    (h0, w0), (top, left), (h, w) = (192, 256), (60, 150), inside.shape
+    rows, cols = np.mgrid[top:top + h, left:left + w]
+    points = np.stack([(cols - (w0 - 1) / 2) * px, ((h0 - 1) / 2 - rows) * px, depth], -1)
+    positions = 1000.0 * np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
+    directions, falloff = (np.asarray(a, np.float64) for a in
+                           jaxps.near_light_field(positions, jnp.asarray(points, jnp.float32)))
+    frames = np.zeros((len(positions), h0, w0))
+    frames[:, top:top + h, left:left + w] = (
+        np.maximum(np.einsum("khwc,hwc->khw", directions, normals), 0) * falloff * 0.6 * inside)
+    (folder / "face").mkdir()
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(folder / "face" / f"f{k}.png"),
+                    np.round(np.clip(frame, 0, 1) * 65535).astype(np.uint16))
+    full_mask = np.zeros((h0, w0), bool)
+    full_mask[top:top + h, left:left + w] = inside
+    cv2.imwrite(str(folder / "mask.png"), full_mask.astype(np.uint8) * 255)
+    (folder / "positions.txt").write_text("".join(f"{x} {y} {z}\n" for x, y, z in positions))
+    return normals, full_mask, (h0, w0), (top, left, h, w)

@@ -1010,3 +1010,44 @@ def test_cli_relight_with_near_light_positions(tmp_path, capsys):
     capsys.readouterr()
     assert main([*base, *near, "--method", "auto", "--out", str(tmp_path / "bad")]) == 2
     assert "method='auto' (--method)" in capsys.readouterr().err
+
+
+def test_cli_relight_near_lamps_with_face_crop(tmp_path, monkeypatch, capsys):
+    """`jaxps relight --crop-face` with near lamps: the relit image is of the crop, the lamps
+    stay measured from the frame's centre (`"centre_px"`), and the crop relights the face as
+    the whole frame does. The face sits off the camera axis in a larger frame; the face
+    detector is replaced by its box (not the shared data)."""
+    import json
+
+    import cv2
+    from helpers import off_centre_face_files
+
+    from jaxps.acquisition import _capture
+    from jaxps.cli import main
+
+    px = 2.0
+    normals, full_mask, (h0, w0), (top, left, h, w) = off_centre_face_files(tmp_path, px)
+    monkeypatch.setattr(_capture, "detect_face", lambda image: (top, left, h, w))
+    new = np.asarray(jaxps.lights_from_angles([30.0], [10.0]), np.float64)[0]
+    truth = np.zeros((h0, w0))
+    truth[top:top + h, left:left + w] = 0.6 * np.maximum(normals @ new, 0)
+    rms = {}
+    for name, extra in (("crop", ["--crop-face"]), ("whole", [])):
+        assert main(["relight", str(tmp_path / "face"), "--mask", str(tmp_path / "mask.png"),
+                     "--no-register", *extra, "--light-positions",
+                     str(tmp_path / "positions.txt"), "--pixel-size", str(px), "--light=30,10",
+                     "--method", "lambertian", "--circle-frames", "1", "--out",
+                     str(tmp_path / name)]) == 0
+        summary = json.loads((tmp_path / name / "relight.json").read_text())
+        relit = cv2.imread(str(tmp_path / name / "relit_A+030E+10.png"), cv2.IMREAD_UNCHANGED)
+        t, l, ch, cw = summary["crop"] or (0, 0, h0, w0)
+        assert relit.shape == (ch, cw)
+        if name == "crop":
+            assert (ch, cw) != (h0, w0) and t <= top and l <= left
+            np.testing.assert_allclose(summary["near_lights"]["centre_px"],
+                                       [(h0 - 1) / 2 - t, (w0 - 1) / 2 - l])
+        err = relit / 255.0 * summary["png_scale"] - truth[t:t + ch, l:l + cw]
+        rms[name] = float(np.sqrt(np.mean(err[full_mask[t:t + ch, l:l + cw]] ** 2)))
+    with capsys.disabled():
+        print(rms)  # `pytest -s -k relight_near_lamps_with_face_crop`
+    assert rms["crop"] < 0.005 and abs(rms["crop"] - rms["whole"]) < 0.001, rms

@@ -373,34 +373,12 @@ def test_reconstruct_near_lights_with_face_crop(tmp_path, monkeypatch):
     strengths are estimated with the lamps as the face sees them. The face sits off the
     camera axis in a larger frame; the face detector is replaced by its box, since a rendered
     relief is no face to a Haar cascade (not the shared data)."""
-    import cv2
-    import jax.numpy as jnp
+    from helpers import off_centre_face_files
 
     from jaxps.acquisition import _capture
 
     px = 2.0
-    face = jaxps.synthetic.face_like(96)
-    inside = np.asarray(face.mask)
-    normals = np.asarray(face.normals, np.float64)
-    depth = np.asarray(face.height, np.float64) * px
-    depth = depth - depth[inside].mean()
-    (h0, w0), (top, left), (h, w) = (192, 256), (60, 150), inside.shape
-    rows, cols = np.mgrid[top:top + h, left:left + w]
-    points = np.stack([(cols - (w0 - 1) / 2) * px, ((h0 - 1) / 2 - rows) * px, depth], -1)
-    positions = 1000.0 * np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
-    directions, falloff = (np.asarray(a, np.float64) for a in
-                           jaxps.near_light_field(positions, jnp.asarray(points, jnp.float32)))
-    frames = np.zeros((len(positions), h0, w0))
-    frames[:, top:top + h, left:left + w] = (
-        np.maximum(np.einsum("khwc,hwc->khw", directions, normals), 0) * falloff * 0.6 * inside)
-    (tmp_path / "face").mkdir()
-    for k, frame in enumerate(frames):
-        cv2.imwrite(str(tmp_path / "face" / f"f{k}.png"),
-                    np.round(np.clip(frame, 0, 1) * 65535).astype(np.uint16))
-    full_mask = np.zeros((h0, w0), bool)
-    full_mask[top:top + h, left:left + w] = inside
-    cv2.imwrite(str(tmp_path / "mask.png"), full_mask.astype(np.uint8) * 255)
-    (tmp_path / "positions.txt").write_text("".join(f"{x} {y} {z}\n" for x, y, z in positions))
+    normals, full_mask, (h0, w0), (top, left, h, w) = off_centre_face_files(tmp_path, px)
     monkeypatch.setattr(_capture, "detect_face", lambda image: (top, left, h, w))
     median = {}
     for name, extra in (("frontal", []), ("none", ["--intensities", "none"])):

@@ -153,6 +153,8 @@ def relight_parser(sub) -> None:
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
     add_light_args(p, near=True)
     p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
+    p.add_argument("--crop-face", action="store_true",
+                   help="crop to the Haar-detected face (the relit images are of the crop)")
     p.add_argument("--method", default="wrap_ggx",
                    help="BRDF model (jaxps.BRDF_METHODS; default wrap_ggx, see docs/brdf.md)")
     p.add_argument("--check-quality", action=argparse.BooleanOptionalAction, default=True,

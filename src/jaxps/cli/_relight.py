@@ -49,6 +49,7 @@ def relight_capture(
     yale_names: bool = False,
     ambient=None,
     mask="auto",
+    crop_face: bool = False,
     method: str = "wrap_ggx",
     new_lights: list[tuple[float, float]] = (),
     circle_zenith_deg: float = 30.0,
@@ -70,6 +71,9 @@ def relight_capture(
     **Arguments:**
     - `frames`, `lights`, `yale_names`, `ambient`, `mask`: as for `jaxps.acquisition.load_capture`
       (grey frames; colour frames are averaged to grey).
+    - `crop_face`: crop the frames to the detected face first, as `jaxps reconstruct
+      --crop-face` does (`"crop"` in the summary: top, left, height, width); the relit
+      images are of the crop.
     - `method`: one of `jaxps.BRDF_METHODS` (default `"wrap_ggx"`, `fit_brdf`'s default: wrap
       diffuse + GGX lobe with normals refined jointly, the one model below Lambert's law on
       held-out lights on every shared Yale B face; `"auto"`: Lambert's law unless the training
@@ -114,9 +118,9 @@ def relight_capture(
     times = {}
     t = time.perf_counter()
     cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask,
-                       check_quality=check_quality, register=register, intensities=intensities,
-                       intensity_mask=intensity_mask, intensity_normal=intensity_normal,
-                       intensity_ratios=intensity_ratios)
+                       crop_face=crop_face, check_quality=check_quality, register=register,
+                       intensities=intensities, intensity_mask=intensity_mask,
+                       intensity_normal=intensity_normal, intensity_ratios=intensity_ratios)
     if cap.lights is None:
         raise ValueError("no lights: give --lights FILE or --yale-names")
     if positions is not None:
@@ -166,7 +170,8 @@ def relight_capture(
 
     fit = model.fit._asdict()
     summary = {
-        "frames": list(cap.names), "dropped_frames": list(cap.dropped), "method": method,
+        "frames": list(cap.names), "dropped_frames": list(cap.dropped), "crop": cap.crop,
+        "method": method,
         "intensities": _intensities(cap, intensity_mask, intensity_normal, intensity_ratios),
         "motion": _motion(cap),
         "fit": fit,
@@ -191,8 +196,9 @@ def run(args) -> int:
         raise ValueError(f"--light must be AZ,EL in degrees, got {args.light}")
     s = relight_capture(
         args.frames, args.out, lights=args.lights, yale_names=args.yale_names,
-        ambient=args.ambient, mask=args.mask, method=args.method, new_lights=new_lights,
-        circle_zenith_deg=args.circle_zenith, circle_frames=args.circle_frames,
+        ambient=args.ambient, mask=args.mask, crop_face=args.crop_face, method=args.method,
+        new_lights=new_lights, circle_zenith_deg=args.circle_zenith,
+        circle_frames=args.circle_frames,
         n_samples=args.samples, max_steps=args.max_steps, seed=args.seed,
         check_quality=args.check_quality, register=args.register,
         intensities=args.intensities, intensity_mask=args.intensity_mask,
