@@ -201,13 +201,7 @@ def load_capture(
         raise ValueError(f"{len(paths)} frames but {len(light_array)} lights")
 
     if ambient is not None:
-        amb = read_image(ambient, linearize=linearize)
-        if amb.shape != images.shape[1:]:
-            raise ValueError(
-                f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, frames have "
-                f"{images.shape[1:]}"
-            )
-        images = _subtract_ambient(images, amb, out=images)  # in place: the stack is ours
+        images = _minus_ambient_file(images, ambient, linearize=linearize)
 
     if isinstance(mask, np.ndarray):
         if mask.shape != images.shape[1:3]:
@@ -405,6 +399,17 @@ def _semi_calibrated(grey, lights, mask, sample_mask):
             ", and fell back to frontal intensities" if fit["fallback"] else "",
             fit["visibility"])
     return np.asarray(info["intensities"], np.float32), fit
+
+
+def _minus_ambient_file(images, ambient, **read_options):
+    """`images` (a stack the caller owns) with the frame in the file `ambient`
+    (`read_image(ambient, **read_options)`) subtracted in place and clipped at 0; a
+    `ValueError` names the file if its shape is not the frames'."""
+    amb = read_image(ambient, **read_options)
+    if amb.shape != images.shape[1:]:
+        raise ValueError(f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, frames "
+                         f"have {images.shape[1:]}")
+    return _subtract_ambient(images, amb, out=images)
 
 
 def _folder_ambient(folder, ambient):

@@ -17,8 +17,7 @@ import sys
 import numpy as np
 
 from ..acquisition import list_frames, load_stack, read_image, read_mask, target_ratios
-from ..acquisition._capture import _folder_ambient, _is_auto
-from ..acquisition._stack import _subtract_ambient
+from ..acquisition._capture import _folder_ambient, _is_auto, _minus_ambient_file
 from ..lights import (
     angles_from_lights,
     lights_from_chrome,
@@ -155,11 +154,7 @@ def _frames(paths, ambient):
     """The frames at `paths` (`load_stack`), `ambient` (a file, or None) subtracted."""
     images, saturated = load_stack(paths)
     if ambient is not None:
-        amb = read_image(ambient)
-        if amb.shape != images.shape[1:]:
-            raise ValueError(f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, "
-                             f"frames have {images.shape[1:]}")
-        images = _subtract_ambient(images, amb, out=images)
+        images = _minus_ambient_file(images, ambient)
     return images, saturated
 
 
