@@ -1032,7 +1032,9 @@ def test_cli_relight_near_lamps_with_face_crop(tmp_path, monkeypatch, capsys):
     truth = np.zeros((h0, w0))
     truth[top:top + h, left:left + w] = 0.6 * np.maximum(normals @ new, 0)
     rms = {}
-    for name, extra in (("crop", ["--crop-face"]), ("whole", [])):
+    # "none": the rendered flashes are equal, so no strength estimate is needed
+    for name, extra in (("crop", ["--crop-face"]), ("whole", []),
+                        ("crop_none", ["--crop-face", "--intensities", "none"])):
         assert main(["relight", str(tmp_path / "face"), "--mask", str(tmp_path / "mask.png"),
                      "--no-register", *extra, "--light-positions",
                      str(tmp_path / "positions.txt"), "--pixel-size", str(px), "--light=30,10",
@@ -1042,7 +1044,7 @@ def test_cli_relight_near_lamps_with_face_crop(tmp_path, monkeypatch, capsys):
         relit = cv2.imread(str(tmp_path / name / "relit_A+030E+10.png"), cv2.IMREAD_UNCHANGED)
         t, l, ch, cw = summary["crop"] or (0, 0, h0, w0)
         assert relit.shape == (ch, cw)
-        if name == "crop":
+        if name != "whole":
             assert (ch, cw) != (h0, w0) and t <= top and l <= left
             np.testing.assert_allclose(summary["near_lights"]["centre_px"],
                                        [(h0 - 1) / 2 - t, (w0 - 1) / 2 - l])
@@ -1050,4 +1052,8 @@ def test_cli_relight_near_lamps_with_face_crop(tmp_path, monkeypatch, capsys):
         rms[name] = float(np.sqrt(np.mean(err[full_mask[t:t + ch, l:l + cw]] ** 2)))
     with capsys.disabled():
         print(rms)  # `pytest -s -k relight_near_lamps_with_face_crop`
+    # measured: 0.0030 (crop), 0.0030 (whole), 0.0007 (crop, --intensities none): what the
+    # default frontal strengths leave on this off-axis face (0.63 deg in the normals,
+    # tests/test_cli.py's face-crop test)
     assert rms["crop"] < 0.005 and abs(rms["crop"] - rms["whole"]) < 0.001, rms
+    assert rms["crop_none"] < 0.0015, rms
