@@ -908,13 +908,28 @@ def test_fit_brdf_per_pixel_lights_equal_shared_ones_when_broadcast(scene):
     lights = np.asarray(lights, np.float32)
     per_pixel = np.broadcast_to(lights[:, None, None], (*lights.shape[:1], *albedo.shape, 3))
     new = jaxps.lights_from_angles([30.0], [10.0])
-    for method in ("lambertian", "mlp_ratio", "wrap_ggx"):
+    new_per_pixel = np.broadcast_to(np.asarray(new, np.float32)[:, None, None],
+                                    (1, *albedo.shape, 3))
+    models = {}
+    for method in ("lambertian", "mlp_ratio", "wrap_ggx", "delaunay"):
         kw = dict(mask=mask, method=method, max_steps=5, n_samples=5000)
-        a = jaxps.fit_brdf(images, normals, albedo, lights, **kw)
+        a = models[method] = jaxps.fit_brdf(images, normals, albedo, lights, **kw)
         b = jaxps.fit_brdf(images, normals, albedo, per_pixel, **kw)
         assert (a.fit.steps, a.fit.rmse) == (b.fit.steps, b.fit.rmse), method
-        np.testing.assert_array_equal(np.asarray(jaxps.relight(a, normals, albedo, new)),
-                                      np.asarray(jaxps.relight(b, normals, albedo, new)))
+        want = np.asarray(jaxps.relight(a, normals, albedo, new, mask=mask))
+        np.testing.assert_array_equal(
+            np.asarray(jaxps.relight(b, normals, albedo, new, mask=mask)), want)
+        # relight and extrapolation_mask take per-pixel lights too
+        np.testing.assert_allclose(
+            np.asarray(jaxps.relight(a, normals, albedo, new_per_pixel, mask=mask)), want,
+            atol=1e-6, err_msg=method)
+        np.testing.assert_array_equal(
+            np.asarray(jaxps.extrapolation_mask(a, normals, new_per_pixel)),
+            np.asarray(jaxps.extrapolation_mask(a, normals, new)))
+    mlp = models["mlp_ratio"]  # the jitted kernel, traced with per-pixel lights
+    traced = jax.jit(lambda l: jaxps.relight(mlp, normals, albedo, l))(new_per_pixel)
+    np.testing.assert_allclose(np.asarray(traced),
+                               np.asarray(jaxps.relight(mlp, normals, albedo, new)), atol=1e-6)
     np.testing.assert_allclose(np.asarray(jaxps.brdf_features(normals, per_pixel)),
                                np.asarray(jaxps.brdf_features(normals, lights)), atol=1e-6)
 
@@ -941,6 +956,9 @@ def test_fit_brdf_with_near_lamps_recovers_the_wrap_parameter():
         relit = np.asarray(jaxps.relight(model, f32(normals), f32(albedo), new))[0]
         got[name] = (float(model.params.shape[0]), model.fit.rmse,
                      float(np.sqrt(np.mean((relit - truth)[inside] ** 2))))
+        if name == "per_pixel":  # the training frames, re-rendered under the lamps
+            again = np.asarray(jaxps.relight(model, f32(normals), f32(albedo), f32(l)))
+            np.testing.assert_allclose(again[:, inside], images[:, inside], atol=1e-5)
     print(got)  # (w, fit RMSE, relit RMS) each: `pytest -s -k near_lamps_recovers`
     # measured: w 0.3000, fit RMSE 4e-8, relit RMS 4e-8 per pixel; w 0.2245, 0.0025, 0.018
     # from the origin's directions
@@ -965,7 +983,7 @@ def test_fit_brdf_per_pixel_lights_bad_input(scene):
         jaxps.fit_brdf(images, normals, albedo, nan, mask=mask)
     for kw, what in ((dict(method="auto"), "method=auto"),
                      (dict(method="mlp_ratio", shrink="loo"), "shrink=loo")):
-        with pytest.raises(ValueError, match=f"{what} relights under the training lights"):
+        with pytest.raises(ValueError, match=f"{what}: its leave-one-light-out folds"):
             jaxps.fit_brdf(images, normals, albedo, per_pixel, mask=mask, **kw)
     with pytest.raises(ValueError, match=r"lights must be \(K, 3\) or \(K, H, W, 3\)"):
         jaxps.brdf_features(normals, per_pixel[:, :, :-1])

@@ -91,8 +91,9 @@ ADDED = {
 # `centre` (where the camera axis meets a cropped image) and `Capture` the field `frame_size`
 # (the frame that `crop` is a box of); those three entries rewritten. `reconstruct_many` gained
 # `light_positions` and `pixel_size` (near lamps for every capture); its entry rewritten.
-# Not from an issue (relighting under near lamps): `fit_brdf` and `brdf_features` take per-pixel
-# lights `(K, H, W, 3)` as well (their `lights` annotation); those two entries rewritten.
+# Not from an issue (relighting under near lamps): `fit_brdf`, `brdf_features`, `relight` and
+# `extrapolation_mask` take per-pixel lights `(K, H, W, 3)` as well (their `lights` annotation);
+# those four entries rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

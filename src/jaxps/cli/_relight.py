@@ -112,8 +112,8 @@ def relight_capture(
     if light_positions is not None or pixel_size is not None:
         positions = _positions(light_positions, pixel_size, lights, yale_names, intensities)
         if method == "auto":
-            raise ValueError("method='auto' (--method) relights under the training lights as "
-                             "distant lights; with light_positions choose a method")
+            raise ValueError("method='auto' (--method): its leave-one-light-out folds take "
+                             "distant lights only; with light_positions choose a method")
         lights = positions / np.linalg.norm(positions, axis=1, keepdims=True)
     times = {}
     t = time.perf_counter()

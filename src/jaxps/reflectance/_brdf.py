@@ -344,8 +344,7 @@ def _check_inputs(images, normals, albedo, lights, mask):
     dtype = images.dtype
     normals = _check_normals(normals, (h, w), dtype)
     albedo = _check_albedo(albedo, (h, w), dtype)
-    lights = (_check_pixel_lights(lights, (h, w), dtype) if np.ndim(lights) == 4
-              else _check_lights(lights, dtype))
+    lights = _any_lights(lights, (h, w), dtype)
     if lights.shape[0] != k:
         raise ValueError(f"images have K={k} frames but lights have {lights.shape[0]} rows")
     if mask is None:
@@ -375,11 +374,14 @@ def _check_albedo(albedo, hw, dtype):
 
 def _check_pixel_lights(lights, hw, dtype):
     """`(K, H, W, 3)` per-pixel lights (near lamps) as unit vectors on the host, checked as
-    `_check_lights` checks distant ones."""
-    lights = np.asarray(lights, np.float64)
+    `_check_lights` checks distant ones (under a trace: the shape only)."""
     if lights.shape[1:] != (*hw, 3):
         raise ValueError(f"per-pixel lights must be (K, H, W, 3) with (H, W) = {hw}, got shape "
                          f"{lights.shape}")
+    if isinstance(lights, jax.core.Tracer):
+        lights = lights.astype(dtype)
+        return lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
+    lights = np.asarray(lights, np.float64)
     if not np.all(np.isfinite(lights)):
         raise ValueError("lights contain NaN or Inf")
     norms = np.linalg.norm(lights, axis=-1, keepdims=True)
@@ -392,6 +394,13 @@ def _check_pixel_lights(lights, hw, dtype):
             f"lights {below.tolist()} are at or below the horizon (l_z <= 0) at some pixel: a "
             "light behind the image plane cannot light the visible surface")
     return lights.astype(dtype)
+
+
+def _any_lights(lights, hw, dtype):
+    """`_check_pixel_lights` for `(K, H, W, 3)` lights, else `_check_lights`."""
+    if np.ndim(lights) == 4:
+        return _check_pixel_lights(lights, hw, dtype)
+    return _check_lights(lights, dtype)
 
 
 def _check_lights(lights, dtype):
@@ -458,8 +467,8 @@ def fit_brdf(
     - `lights`: `(K, 3)` directions toward the lights, above the horizon (l_z > 0), or
       `(K, H, W, 3)` per pixel, for near lamps (`NearResult.lights` of
       `jaxps.near_photometric_stereo`, with `images` divided by its `falloff`). Per-pixel
-      lights work with every method but `"auto"` and `shrink="loo"`, whose folds relight under
-      distant training lights.
+      lights work with every method but `"auto"` and `shrink="loo"`, whose leave-one-light-out
+      folds take distant lights only.
     - `mask`: `(H, W)` bool, pixels to learn from (default all; must not be empty).
     - `method`: `"wrap_ggx"` (the default: wrap diffuse + GGX lobe, normals refined jointly;
       the only model below Lambert's law on held-out lights on all five shared Yale B faces,
@@ -541,9 +550,9 @@ def fit_brdf(
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
     if lights.ndim == 4 and (method == "auto" or shrink is not None):
-        raise ValueError(f"{'method=auto' if method == 'auto' else 'shrink=loo'} relights "
-                         "under the training lights as distant lights: it needs (K, 3) lights, "
-                         "got per-pixel (K, H, W, 3) ones")
+        raise ValueError(f"{'method=auto' if method == 'auto' else 'shrink=loo'}: its "
+                         "leave-one-light-out folds take distant lights only; it needs (K, 3) "
+                         "lights, got per-pixel (K, H, W, 3) ones")
     if int(n_samples) < images.shape[0]:  # n_samples // K pixels are drawn
         raise ValueError(f"n_samples must be at least K = {images.shape[0]} (one pixel per "
                          f"light), got {n_samples!r}")
@@ -747,16 +756,18 @@ def relight(
     model: BRDFModel,
     normals: Float[ArrayLike, "H W 3"],
     albedo: Float[ArrayLike, "H W"],
-    lights: Float[ArrayLike, "K 3"],
+    lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "K H W 3"],
     *,
     mask: Bool[ArrayLike, "H W"] | None = None,
 ) -> Float[Array, "K H W"]:
-    """Render `normals` and `albedo` under new distant `lights` with a fitted BRDF.
+    """Render `normals` and `albedo` under new `lights` with a fitted BRDF.
 
     **Arguments:**
     - `model`: from `fit_brdf`.
     - `normals`: `(H, W, 3)` unit normals; `albedo`: `(H, W)` in the training images' units.
-    - `lights`: `(K, 3)` (or one `(3,)`) directions toward the lights, l_z > 0.
+    - `lights`: `(K, 3)` (or one `(3,)`) directions toward distant lights, l_z > 0, or
+      `(K, H, W, 3)` per pixel (near lamps, `jaxps.near_light_field`; multiply the images by
+      its fall-off to see them as the lamps light the face).
     - `mask`: `(H, W)` bool, pixels to render (default all); 0 elsewhere.
 
     **Returns:** `(K, H, W)` images in the training images' units and the dtype of `normals`
@@ -770,7 +781,7 @@ def relight(
         raise ValueError(f"normals must be (H, W, 3), got {normals.shape}")
     hw = normals.shape[:2]
     albedo = _check_albedo(albedo, hw, normals.dtype)
-    lights = _check_lights(lights, normals.dtype)
+    lights = _any_lights(lights, hw, normals.dtype)
     if mask is not None and np.shape(mask) != hw:
         raise ValueError(f"mask must have shape (H, W) = {hw}, got {np.shape(mask)}")
     if model.gate is not None:  # method="auto": Lambert's law outside the gate
@@ -818,6 +829,8 @@ def _relight_kernel(config, arrays, normals, albedo, lights):
     dtype = normals.dtype
     k = lights.shape[0]
     h, w, _ = normals.shape
+    if lights.ndim == 4:  # per pixel: (K, P, 3)
+        lights = lights.reshape(k, h * w, 3)
     theta_i, theta_r, delta, cos_i = _angles_elementwise(normals, lights)
     rho = albedo.reshape(1, -1)
     lambert = rho * jnp.maximum(cos_i, 0)
@@ -873,9 +886,10 @@ def _mlp_elementwise(params, rows):
 def extrapolation_mask(
     model: BRDFModel,
     normals: Float[ArrayLike, "H W 3"],
-    lights: Float[ArrayLike, "K 3"],
+    lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "K H W 3"],
 ) -> Bool[Array, "K H W"]:
-    """`(K, H, W)` bool: samples where `model` has no training data nearby.
+    """`(K, H, W)` bool: samples where `model` has no training data nearby, under `(K, 3)`
+    distant or `(K, H, W, 3)` per-pixel lights.
 
     For the MLP methods and Lambertian: (θi, θr, Δα) where the support grid's interpolated
     occupancy is below 0.5 (the MLP's correction is scaled by that occupancy, so it fades to
@@ -887,7 +901,7 @@ def extrapolation_mask(
         normals = normals.astype(jnp.float32)
     if normals.ndim != 3 or normals.shape[-1] != 3:
         raise ValueError(f"normals must be (H, W, 3), got {normals.shape}")
-    lights = _check_lights(lights, normals.dtype)
+    lights = _any_lights(lights, normals.shape[:2], normals.dtype)
     f = _features(normals, lights)
     if model.method == "delaunay":
         ang = np.asarray(f[..., :3], np.float64)

@@ -436,10 +436,13 @@ _predict_jit = jax.jit(_predict, static_argnames=_STATIC_NAMES)
 
 @functools.partial(jax.jit, static_argnames="method")
 def render(method, params, normals, albedo, lights):
-    """`(K, H, W)` images of a fitted parametric `method` at unit frame gains."""
+    """`(K, H, W)` images of a fitted parametric `method` at unit frame gains, under `(K, 3)`
+    distant or `(K, H, W, 3)` per-pixel lights."""
     diffuse, specular = PARAMETRIC_METHODS[method]
     h, w, _ = normals.shape
     dtype = normals.dtype
+    if lights.ndim == 4:
+        lights = lights.reshape(lights.shape[0], h * w, 3)
     if params.normals is not None:
         normals = params.normals.astype(dtype)
     d, s = _terms(diffuse, specular, params.shape.astype(dtype), normals.reshape(-1, 3), lights)
