@@ -93,9 +93,9 @@ def relight_capture(
       origin at the frame's centre at the subject's mean depth; `lights` is then not given).
       The frames are solved by `near_photometric_stereo`, and the BRDF is fitted with each
       pixel's own light directions and the fall-off divided out (`fit_brdf` with
-      `NearResult.lights`; `"auto"` is refused there). The new lights stay distant: a relit
-      image shows the face under a distant light as bright as a lamp is at the origin.
-      `relight.json` holds `"near_lights"`.
+      `NearResult.lights`). The new lights stay distant: a relit image shows the face under a
+      distant light as bright as a lamp is at the origin. `relight.json` holds
+      `"near_lights"`.
 
     **Returns:** the summary written to `relight.json` (fit report, files, timings).
     """
@@ -111,9 +111,6 @@ def relight_capture(
     positions = None
     if light_positions is not None or pixel_size is not None:
         positions = _positions(light_positions, pixel_size, lights, yale_names, intensities)
-        if method == "auto":
-            raise ValueError("method='auto' (--method): its leave-one-light-out folds take "
-                             "distant lights only; with light_positions choose a method")
         lights = positions / np.linalg.norm(positions, axis=1, keepdims=True)
     times = {}
     t = time.perf_counter()

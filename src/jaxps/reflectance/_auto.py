@@ -56,12 +56,17 @@ def lolo_folds(fit, relight, images, lights, mask, methods, *, ps_method, satura
     """Leave-one-light-out predictions: a list over the folds $j$ whose K-1 lights span 3-D of
     `(j, obs (H, W), valid (H, W) bool, lambert (H, W), {method: (H, W)})`, all float64, the
     models fitted by `fit(images, normals, albedo, lights, mask=, method=, **options)` on the
-    other frames' normals and albedo (`photometric_stereo(method=ps_method)`)."""
+    other frames' normals and albedo (`photometric_stereo(method=ps_method)`). `lights`:
+    `(K, 3)` distant or `(K, H, W, 3)` per pixel (a fold's span is judged on each light's mean
+    direction over the image)."""
     k = images.shape[0]
+    directions = np.asarray(lights, np.float64)
+    if directions.ndim == 4:
+        directions = directions.reshape(k, -1, 3).mean(axis=1)
     folds = []
     for j in range(k):
         keep = np.array([i for i in range(k) if i != j])
-        if np.linalg.cond(np.asarray(lights[keep], np.float64)) > MAX_LIGHT_CONDITION:
+        if np.linalg.cond(directions[keep]) > MAX_LIGHT_CONDITION:
             continue
         ps = photometric_stereo(images[keep], lights[keep], mask=mask, method=ps_method)
         obs = np.asarray(images[j], np.float64)
@@ -70,11 +75,12 @@ def lolo_folds(fit, relight, images, lights, mask, methods, *, ps_method, satura
         for name in methods:
             model = fit(images[keep], ps.normals, ps.albedo, lights[keep], mask=mask,
                         method=name, **options)
-            preds[name] = np.asarray(relight(model, ps.normals, ps.albedo, lights[j]),
+            preds[name] = np.asarray(relight(model, ps.normals, ps.albedo, lights[j:j + 1]),
                                      np.float64)[0]
             if lam is None:
                 base = dataclasses.replace(model, method="lambertian", params=None)
-                lam = np.asarray(relight(base, ps.normals, ps.albedo, lights[j]), np.float64)[0]
+                lam = np.asarray(relight(base, ps.normals, ps.albedo, lights[j:j + 1]),
+                                 np.float64)[0]
         folds.append((j, obs, valid, lam, preds))
     return folds
 

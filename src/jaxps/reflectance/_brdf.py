@@ -466,9 +466,8 @@ def fit_brdf(
       `jaxps.photometric_stereo` on the same images), in the images' units.
     - `lights`: `(K, 3)` directions toward the lights, above the horizon (l_z > 0), or
       `(K, H, W, 3)` per pixel, for near lamps (`NearResult.lights` of
-      `jaxps.near_photometric_stereo`, with `images` divided by its `falloff`). Per-pixel
-      lights work with every method but `"auto"` and `shrink="loo"`, whose leave-one-light-out
-      folds take distant lights only.
+      `jaxps.near_photometric_stereo`, with `images` divided by its `falloff`); every method
+      takes either.
     - `mask`: `(H, W)` bool, pixels to learn from (default all; must not be empty).
     - `method`: `"wrap_ggx"` (the default: wrap diffuse + GGX lobe, normals refined jointly;
       the only model below Lambert's law on held-out lights on all five shared Yale B faces,
@@ -549,10 +548,6 @@ def fit_brdf(
         raise ValueError("shrink='loo' scales the correction to Lambert's law: it needs "
                          "method 'mlp' or 'mlp_ratio' with lambertian_base=True")
     images, normals, albedo, lights, mask = _check_inputs(images, normals, albedo, lights, mask)
-    if lights.ndim == 4 and (method == "auto" or shrink is not None):
-        raise ValueError(f"{'method=auto' if method == 'auto' else 'shrink=loo'}: its "
-                         "leave-one-light-out folds take distant lights only; it needs (K, 3) "
-                         "lights, got per-pixel (K, H, W, 3) ones")
     if int(n_samples) < images.shape[0]:  # n_samples // K pixels are drawn
         raise ValueError(f"n_samples must be at least K = {images.shape[0]} (one pixel per "
                          f"light), got {n_samples!r}")
