@@ -50,10 +50,10 @@ def assert_reuses_dropped_results(solve, expected, last=None):
     viewed, held = second.albedo.unsafe_buffer_pointer(), third.normals.unsafe_buffer_pointer()
     del second
     fourth = solve(3)
-    # Neither the viewed buffer nor the held result is written. `second`'s other buffers are
-    # not checked: whether a view counts as a reference to the jax array it came from is not
-    # stable (a CI run once found `fourth.normals` in `second.normals`' buffer, while the view
-    # was intact), and XLA declines to donate a buffer that a view still holds.
+    # Neither the viewed buffer nor the held result is written. Where `second`'s other buffers
+    # went is not checked: one CI run (of 7710569) found `fourth.normals` at the address that
+    # `second.normals` had, with the view intact. Why was not found (not reproduced in
+    # isolation or in three files run together); XLA declines to donate a buffer a view holds.
     assert fourth.albedo.unsafe_buffer_pointer() != viewed
     assert fourth.normals.unsafe_buffer_pointer() != held
     np.testing.assert_array_equal(view, expected[1][1])
