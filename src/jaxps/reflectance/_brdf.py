@@ -344,7 +344,7 @@ def _check_inputs(images, normals, albedo, lights, mask):
     dtype = images.dtype
     normals = _check_normals(normals, (h, w), dtype)
     albedo = _check_albedo(albedo, (h, w), dtype)
-    lights = _any_lights(lights, (h, w), dtype)
+    lights = _check_lights(lights, dtype, (h, w))
     if lights.shape[0] != k:
         raise ValueError(f"images have K={k} frames but lights have {lights.shape[0]} rows")
     if mask is None:
@@ -372,61 +372,39 @@ def _check_albedo(albedo, hw, dtype):
     return albedo
 
 
-def _check_pixel_lights(lights, hw, dtype):
-    """`(K, H, W, 3)` per-pixel lights (near lamps) as unit vectors on the host, checked as
-    `_check_lights` checks distant ones (under a trace: the shape only)."""
-    if lights.shape[1:] != (*hw, 3):
-        raise ValueError(f"per-pixel lights must be (K, H, W, 3) with (H, W) = {hw}, got shape "
-                         f"{lights.shape}")
-    if isinstance(lights, jax.core.Tracer):
-        lights = lights.astype(dtype)
-        return lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
-    lights = np.asarray(lights, np.float64)
-    if not np.all(np.isfinite(lights)):
-        raise ValueError("lights contain NaN or Inf")
-    norms = np.linalg.norm(lights, axis=-1, keepdims=True)
-    if np.any(norms < 1e-8):
-        raise ValueError("lights contain zero vectors")
-    lights = lights / norms
-    below = np.flatnonzero((lights[..., 2] <= 0).any(axis=(1, 2)))
-    if below.size:
-        raise ValueError(
-            f"lights {below.tolist()} are at or below the horizon (l_z <= 0) at some pixel: a "
-            "light behind the image plane cannot light the visible surface")
-    return lights.astype(dtype)
-
-
-def _any_lights(lights, hw, dtype):
-    """`_check_pixel_lights` for `(K, H, W, 3)` lights, else `_check_lights`."""
-    if np.ndim(lights) == 4:
-        return _check_pixel_lights(lights, hw, dtype)
-    return _check_lights(lights, dtype)
-
-
-def _check_lights(lights, dtype):
-    if isinstance(lights, jax.core.Tracer):  # under jit or grad: shape checks only
+def _check_lights(lights, dtype, hw=None):
+    """`lights` as unit vectors of `dtype`, checked: `(K, 3)` (or one `(3,)`) distant lights,
+    or, where the image size `hw` is given, `(K, H, W, 3)` per-pixel ones (near lamps). Under
+    jit or grad only the shape is checked."""
+    traced = isinstance(lights, jax.core.Tracer)
+    if not traced:
+        lights = np.asarray(lights, np.float64)
+    per_pixel = hw is not None and lights.ndim == 4
+    if per_pixel:
+        if lights.shape[1:] != (*hw, 3):
+            raise ValueError(f"per-pixel lights must be (K, H, W, 3) with (H, W) = {hw}, got "
+                             f"shape {lights.shape}")
+    else:
         if lights.shape == (3,):
             lights = lights[None]
         if lights.ndim != 2 or lights.shape[1] != 3:
             raise ValueError(f"lights must be (K, 3) or (3,), got shape {lights.shape}")
+    if traced:
         lights = lights.astype(dtype)
-        return lights / jnp.linalg.norm(lights, axis=1, keepdims=True)
-    lights = np.asarray(lights, np.float64)
-    if lights.ndim == 1 and lights.shape == (3,):
-        lights = lights[None]
-    if lights.ndim != 2 or lights.shape[1] != 3:
-        raise ValueError(f"lights must be (K, 3) or (3,), got shape {lights.shape}")
+        return lights / jnp.linalg.norm(lights, axis=-1, keepdims=True)
     if not np.all(np.isfinite(lights)):
         raise ValueError("lights contain NaN or Inf")
-    norms = np.linalg.norm(lights, axis=1)
-    if np.any(norms < 1e-8):
-        raise ValueError(f"lights {np.flatnonzero(norms < 1e-8).tolist()} are zero vectors")
-    lights = lights / norms[:, None]
-    below = np.flatnonzero(lights[:, 2] <= 0)
+    norms = np.linalg.norm(lights, axis=-1, keepdims=True)
+    zero = np.flatnonzero((norms < 1e-8).reshape(len(lights), -1).any(axis=1))
+    if zero.size:
+        raise ValueError(f"lights {zero.tolist()} are zero vectors")
+    lights = lights / norms
+    below = np.flatnonzero((lights[..., 2] <= 0).reshape(len(lights), -1).any(axis=1))
     if below.size:
         raise ValueError(
-            f"lights {below.tolist()} are at or below the horizon (l_z <= 0): a light behind "
-            "the image plane cannot light the visible surface")
+            f"lights {below.tolist()} are at or below the horizon (l_z <= 0)"
+            f"{' at some pixel' if per_pixel else ''}: a light behind the image plane cannot "
+            "light the visible surface")
     return lights.astype(dtype)  # numpy: a jit takes it as is; jnp.asarray dispatches a convert
 
 
@@ -776,7 +754,7 @@ def relight(
         raise ValueError(f"normals must be (H, W, 3), got {normals.shape}")
     hw = normals.shape[:2]
     albedo = _check_albedo(albedo, hw, normals.dtype)
-    lights = _any_lights(lights, hw, normals.dtype)
+    lights = _check_lights(lights, normals.dtype, hw)
     if mask is not None and np.shape(mask) != hw:
         raise ValueError(f"mask must have shape (H, W) = {hw}, got {np.shape(mask)}")
     if model.gate is not None:  # method="auto": Lambert's law outside the gate
@@ -896,7 +874,7 @@ def extrapolation_mask(
         normals = normals.astype(jnp.float32)
     if normals.ndim != 3 or normals.shape[-1] != 3:
         raise ValueError(f"normals must be (H, W, 3), got {normals.shape}")
-    lights = _any_lights(lights, normals.shape[:2], normals.dtype)
+    lights = _check_lights(lights, normals.dtype, normals.shape[:2])
     f = _features(normals, lights)
     if model.method == "delaunay":
         ang = np.asarray(f[..., :3], np.float64)
