@@ -2,11 +2,15 @@
 recovered from scenes rendered in numpy, frame gains, and the issue-16 synthetic target (a face
 with Oren–Nayar sigma = 0.4 and a GGX lobe, five scanner lights, twelve held-out lights)."""
 
+import functools
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jaxps
+from jaxps.reflectance import _parametric
 
 TRAIN = jaxps.lights_from_angles([0, 25, -25, 0, 0], [0, 0, 0, 20, -20])
 # twelve other lights within 35 degrees of the view axis
@@ -209,3 +213,68 @@ def test_residual_mlp_on_the_synthetic_face():
         jaxps.relight(base, ps.normals, ps.albedo, TEST))
     rho_d = np.asarray(ps.albedo * resid.params.diffuse_ratio)
     assert np.all(np.abs(diff)[:, m] <= RESIDUAL_BOUND * rho_d[m] + 1e-5)
+
+
+@pytest.mark.parametrize(("method", "lights_kind", "fit_gains"), [
+    *((m, "distant", True) for m in sorted(_parametric.PARAMETRIC_METHODS)
+      if m != "wrap_ggx_residual"),  # its network is fitted by a second solve, with jacfwd
+    ("wrap_ggx", "per_pixel", True), ("blinn_phong", "per_pixel", False),
+    ("oren_nayar_ggx", "distant", False)])
+def test_hand_written_jacobian_equals_jacfwd(method, lights_kind, fit_gains):
+    """The fit's Jacobian (`_predict_and_jacobian`, the residuals' custom JVP) against
+    `jax.jacfwd` of `_predict` on the synthetic face with noise, several regions, some samples
+    weighted out and one region with no samples (its specular albedo clipped to 0)."""
+    surf, albedo = face(64)
+    m = np.asarray(surf.mask)
+    pix = np.flatnonzero(m.reshape(-1))
+    rng = np.random.default_rng(3)
+    normals = np.asarray(surf.normals, np.float32).reshape(-1, 3)[pix]
+    lights = np.asarray(TRAIN, np.float32)
+    if lights_kind == "per_pixel":  # lamps tilted a little differently at each pixel
+        tilt = 0.05 * rng.standard_normal((len(lights), pix.size, 3)).astype(np.float32)
+        lights = lights[:, None] + tilt
+        lights /= np.linalg.norm(lights, axis=-1, keepdims=True)
+    diffuse, specular = _parametric.PARAMETRIC_METHODS[method]
+    ci = (np.einsum("kpc,pc->kp", lights, normals) if lights.ndim == 3
+          else lights @ normals.T)
+    y = (albedo.reshape(-1)[pix] * np.maximum(ci, 0)
+         + 0.02 * rng.standard_normal(ci.shape)).astype(np.float32)
+    w = (rng.random(ci.shape) > 0.1).astype(np.float32)
+    region = (pix % 64 // 16).astype(np.int32)  # four column bands ...
+    n_regions = 5  # ... and a fifth region with no samples
+    data = tuple(jnp.asarray(a) for a in (normals, lights, y, w, region))
+    static = {"diffuse": diffuse, "specular": specular, "n_regions": n_regions,
+              "fit_gains": fit_gains}
+    p = jnp.asarray([0.3, -0.4, 0.05, -0.03, 0.02, 0.0, -0.04], jnp.float32)
+
+    pred, jac = jax.jit(_parametric._predict_and_jacobian, static_argnames=tuple(static))(
+        p, data, **static)
+    ref_pred = _parametric._predict(p, data, **static)[0]
+    ref_jac = jnp.moveaxis(jax.jacfwd(lambda q: _parametric._predict(q, data, **static)[0])(p),
+                           -1, 0)
+    scale = float(jnp.max(jnp.abs(ref_jac)))
+    assert scale > 1e-3  # every method has a parameter that moves the prediction
+    atol = max(2e-5 * scale, 5e-7)  # float32 rounding of a prediction of about 0.5
+    np.testing.assert_allclose(pred, ref_pred, atol=2e-6)
+    np.testing.assert_allclose(jac, ref_jac, atol=atol)
+    # the columns that cannot move the prediction are zero in both
+    unused = [0] * (diffuse == "lambert") + [1] * (specular is None) + (
+        [] if fit_gains else list(range(2, 7)))
+    assert np.all(np.asarray(jac)[unused] == 0)
+
+    # what the solver sees: the weighted residuals' linearisation
+    res = functools.partial(_parametric._weighted_residuals, **static)
+    value, lin = jax.linearize(lambda q: res(q, data), p)
+    np.testing.assert_allclose(value, (w * (ref_pred - y)).reshape(-1), atol=2e-6)
+    np.testing.assert_allclose(jax.vmap(lin)(jnp.eye(7, dtype=p.dtype)),
+                               (w[None] * ref_jac).reshape(7, -1), atol=atol)
+
+
+def test_fit_residuals_refuse_a_derivative_with_respect_to_the_data():
+    data = (jnp.asarray([[0.0, 0.0, 1.0]]), TRAIN, jnp.ones((5, 1)), jnp.ones((5, 1)),
+            jnp.zeros((1,), jnp.int32))
+    res = functools.partial(_parametric._weighted_residuals, diffuse="wrap", specular="ggx",
+                            n_regions=1, fit_gains=True)
+    p = jnp.zeros((7,))
+    with pytest.raises(NotImplementedError, match="not its data"):
+        jax.jvp(lambda y: res(p, (*data[:2], y, *data[3:])), (data[2],), (data[2],))

@@ -381,7 +381,12 @@ def _refine(p, data, diffuse, specular, n_regions, fit_gains, steps=8):
             jac = jax.jacfwd(resid)(ab, n0, yp, wp, rs, lp)
             a = jac.T @ jac
             a = a + lam * jnp.diag(jnp.diag(a)) + 1e-9 * jnp.eye(2, dtype=a.dtype)
-            delta = -jnp.linalg.solve(a, jac.T @ r)
+            # the 2x2 system by cofactors: a batched LU and two triangular solves took 37 of
+            # this function's 87 ms at 30,000 pixels (scratch)
+            grad = jac.T @ r
+            delta = -jnp.stack([a[1, 1] * grad[0] - a[0, 1] * grad[1],
+                                a[0, 0] * grad[1] - a[1, 0] * grad[0]]) / (
+                a[0, 0] * a[1, 1] - a[0, 1] * a[1, 0])
             delta = delta * jnp.minimum(1, 0.2 / jnp.maximum(jnp.linalg.norm(delta), 1e-12))
             better = jnp.sum(resid(ab + delta, n0, yp, wp, rs, lp) ** 2) < jnp.sum(r**2)
             return jnp.where(better, ab + delta, ab), jnp.where(better, lam * 0.3, lam * 10)
@@ -398,11 +403,132 @@ _STATIC_NAMES = ("diffuse", "specular", "n_regions", "fit_gains")
 _refine_jit = jax.jit(_refine, static_argnames=_STATIC_NAMES)
 
 
+def _frame_sum(x):
+    """Sum over the leading (frame) axis, unrolled: XLA-CPU's reduction over a short leading
+    axis was the slowest part of the Jacobian below (3.7 against 6.6 ms, scratch)."""
+    return functools.reduce(jnp.add, [x[i] for i in range(x.shape[0])])
+
+
+def _predict_and_jacobian(p, data, diffuse, specular, n_regions, fit_gains):
+    """`_predict`'s `(K, P)` prediction and its `(len(p), K, P)` Jacobian with respect to the
+    flat parameters `p`, the closed-form albedos differentiated by hand (variable projection:
+    Golub & Pereyra 1973, the full derivative, not Kaufman's approximation).
+
+    `jax.jacfwd` of `_predict` took 24-30 ms at 100,000 samples, 30-40x a prediction:
+    XLA-CPU recomputed the shading's derivatives inside each of the albedos' sums. Here each
+    parameter moves only a few things. A shape parameter moves the `(K, P)` shading
+    ($\\dot d$, $\\dot s$ from one `jax.jvp` of `_terms`), and a frame gain $g_k$ moves frame
+    $k$ alone, so its per-pixel sums are that frame's terms, with no sum at all. Equal to
+    `jax.jacfwd`'s within float32 rounding (`tests/test_parametric.py`)."""
+    normals, lights, y, w, region = data
+    k = lights.shape[0]
+
+    def unpack(q):
+        return _unpack(q, diffuse, specular, k, fit_gains)
+
+    def terms(shape):
+        return _terms(diffuse, specular, shape, normals, lights)
+
+    shape, gains = unpack(p)
+    # each parameter's pull on the two shape values and the K gains: (n, 2), (n, K)
+    shape_dot, gains_dot = jax.vmap(lambda t: jax.jvp(unpack, (p,), (t,))[1])(
+        jnp.eye(p.shape[0], dtype=p.dtype))
+    (d0, s0), (dd0, ds0) = jax.jvp(terms, (shape,), (jnp.asarray([1, 0], p.dtype),))
+    _, (dd1, ds1) = jax.jvp(terms, (shape,), (jnp.asarray([0, 1], p.dtype),))
+    g = gains[:, None]
+    d, s = g * d0, g * s0
+
+    def dot(a, b):  # the frames' weighted inner product, per pixel: (1, P)
+        return _frame_sum(w * a * b)[None]
+
+    # the forward solve, as `_albedos` (per-pixel terms (1, P), per-region (1, R))
+    tiny = jnp.asarray(1e-12, d.dtype)
+    a_raw = dot(d, d)
+    a = jnp.maximum(a_raw, tiny)
+    d_s = dot(d, s)
+    cs, cy = d_s / a, dot(d, y) / a
+    s_perp, y_perp = s - d * cs, y - d * cy
+    seg = jax.vmap(lambda x: jax.ops.segment_sum(x, region, n_regions))
+    num = seg(dot(s_perp, y_perp))
+    den_raw = seg(dot(s_perp, s_perp))
+    den = jnp.maximum(den_raw, tiny)
+    ratio = num / den
+    rs = jnp.maximum(ratio, 0)[:, region]
+    rho_d_raw = dot(d, y - rs * s) / a
+    rho_d = jnp.maximum(rho_d_raw, 0)
+    pred = rho_d * d + rs * s
+    d_yp, d_sp = dot(d, y_perp), dot(d, s_perp)
+
+    def albedo_dots(a_dot, ds_dot, dy_dot, st_yp, dt_yp, dt_sp, st_sp):
+        """The albedos' tangents along m directions from the directions' `(m, P)` sums
+        <dt, d>, <dt, s> + <d, st>, <dt, y>, <st, y_perp>, <dt, y_perp>, <dt, s_perp> and
+        <st, s_perp> (dt, st: the direction's change of d and s), as `jax.jvp` of `_albedos`
+        gives them (where a `maximum` clips, its branch's derivative)."""
+        a_dot = jnp.where(a_raw > tiny, 2 * a_dot, 0)
+        cs_dot = (ds_dot - cs * a_dot) / a
+        cy_dot = (dy_dot - cy * a_dot) / a
+        num_dot = seg(st_yp - cs * dt_yp - cs_dot * d_yp - cy * dt_sp - cy_dot * d_sp)
+        den_dot = jnp.where(den_raw > tiny, seg(2 * (st_sp - cs * dt_sp - cs_dot * d_sp)), 0)
+        rs_dot = jnp.where(ratio > 0, (num_dot - ratio * den_dot) / den, 0)[:, region]
+        rho_d_dot = jnp.where(rho_d_raw > 0,
+                              (dy_dot - rs * ds_dot - rs_dot * d_s - rho_d_raw * a_dot) / a, 0)
+        return rho_d_dot, rs_dot
+
+    # along the two shape values: (K, P) changes of d and s, one direction at a time (stacked,
+    # XLA-CPU laid the segment sums' input out transposed: 4.9 against 8.2 ms a step, scratch)
+    dt, st = (g * dd0, g * dd1), (g * ds0, g * ds1)
+    shape_dots = [albedo_dots(dot(dti, d), dot(dti, s) + dot(sti, d), dot(dti, y),
+                              dot(sti, y_perp), dot(dti, y_perp), dot(dti, s_perp),
+                              dot(sti, s_perp))
+                  for dti, sti in zip(dt, st)]
+    # along the K gains: gain j scales frame j's d0 and s0 alone, so the sums along gain j
+    # are frame j's terms, and those along all K gains are the (K, P) terms themselves
+    wd0, ws0 = w * d0, w * s0
+    gain_dots = albedo_dots(wd0 * d, 2 * g * wd0 * s0, wd0 * y, ws0 * y_perp, wd0 * y_perp,
+                            wd0 * s_perp, ws0 * s_perp)
+    # along each parameter: the tangents are linear in the 2 + K directions'
+    basis = jnp.concatenate([shape_dot, gains_dot], 1)  # (n, 2 + K)
+    rho_d_dot, rs_dot = (basis @ jnp.concatenate([*shapes, gains])
+                         for shapes, gains in zip(zip(*shape_dots), gain_dots))
+
+    def change(x, x0):  # (n, K, P) change of d (or s) from its shape directions x and x0
+        return (shape_dot[:, 0, None, None] * x[0][None] + shape_dot[:, 1, None, None] * x[1][None]
+                + gains_dot[:, :, None] * x0[None])
+
+    # every term broadcast explicitly (the tests make rank promotion an error)
+    jac = (rho_d_dot[:, None] * d[None] + rho_d[None] * change(dt, d0)
+           + rs_dot[:, None] * s[None] + rs[None] * change(st, s0))
+    return pred, jac
+
+
+@functools.partial(jax.custom_jvp, nondiff_argnums=(2, 3, 4, 5))
+def _weighted_residuals(p, data, diffuse, specular, n_regions, fit_gains):
+    """The fit's `(K P,)` residuals, with `_predict_and_jacobian`'s Jacobian as its JVP."""
+    y, w = data[2], data[3]
+    return (w * (_predict(p, data, diffuse, specular, n_regions, fit_gains)[0] - y)).reshape(-1)
+
+
+@functools.partial(_weighted_residuals.defjvp, symbolic_zeros=True)
+def _weighted_residuals_jvp(diffuse, specular, n_regions, fit_gains, primals, tangents):
+    p, data = primals
+    p_dot, data_dot = tangents
+    if not all(isinstance(t, jax.custom_derivatives.SymbolicZero)
+               for t in jax.tree.leaves(data_dot)):
+        raise NotImplementedError("the fit's residuals are differentiated only with respect to "
+                                  "its parameters, not its data")
+    y, w = data[2], data[3]
+    pred, jac = _predict_and_jacobian(p, data, diffuse, specular, n_regions, fit_gains)
+    residuals = (w * (pred - y)).reshape(-1)
+    if isinstance(p_dot, jax.custom_derivatives.SymbolicZero):
+        return residuals, jnp.zeros_like(residuals)
+    wj = w[None] * jac
+    return residuals, functools.reduce(jnp.add, [p_dot[i] * wj[i] for i in range(p.shape[0])]
+                                       ).reshape(-1)
+
+
 def _least_squares(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps):
     def residuals(p, data):
-        w = data[3]
-        return (w * (_predict(p, data, diffuse, specular, n_regions, fit_gains)[0] - data[2])
-                ).reshape(-1)
+        return _weighted_residuals(p, data, diffuse, specular, n_regions, fit_gains)
 
     return optx.least_squares(residuals, solver, p0, args=data, max_steps=max_steps, throw=False)
 
