@@ -83,7 +83,7 @@ def score_relighting(
     images: Float[ArrayLike, "K H W"],
     normals: Float[ArrayLike, "H W 3"],
     albedo: Float[ArrayLike, "H W"],
-    lights: Float[ArrayLike, "K 3"],
+    lights: Float[ArrayLike, "K 3"] | Float[ArrayLike, "K H W 3"],
     *,
     mask: Bool[ArrayLike, "H W"] | None = None,
     scale: float = 255.0,
@@ -94,8 +94,10 @@ def score_relighting(
     **Arguments:**
     - `model`: from `fit_brdf`, fitted on other frames of the same capture.
     - `images`: `(K, H, W)` the held-out photographs (linear, ambient subtracted, in the
-      training images' units); `lights`: `(K, 3)` their directions. Lights more than 60° from
-      the view axis (0, 0, 1) are not scored.
+      training images' units); `lights`: `(K, 3)` their directions, or `(K, H, W, 3)` each
+      pixel's own (near lamps, as `fit_brdf` takes them: the images then have the lamps'
+      fall-off divided out). Lights more than 60° from the view axis (0, 0, 1) are not
+      scored; a per-pixel light's angle is its mean direction's over the scored pixels.
     - `normals`, `albedo`: `(H, W, 3)`, `(H, W)`, the ones `model` was fitted with (e.g. L2
       photometric stereo on the training frames).
     - `mask`: `(H, W)` bool, the pixels to score (default all; must not be empty).
@@ -113,7 +115,7 @@ def score_relighting(
     k, h, w = obs.shape
     if not (np.isfinite(scale) and scale > 0):
         raise ValueError(f"scale must be a positive number, got {scale!r}")
-    unit = np.asarray(_check_lights(lights, np.float32), np.float64)
+    unit = np.asarray(_check_lights(lights, np.float32, (h, w)), np.float64)
     if unit.shape[0] != k:
         raise ValueError(f"images have K={k} frames but lights have {unit.shape[0]} rows")
     sel = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
@@ -125,11 +127,13 @@ def score_relighting(
         raise ValueError(f"normals must be (H, W, 3) = {(h, w, 3)}, got {np.shape(normals)}")
     if np.shape(albedo) != (h, w):
         raise ValueError(f"albedo must be (H, W) = {(h, w)}, got {np.shape(albedo)}")
-    zenith = np.degrees(np.arccos(np.clip(unit[:, 2], -1.0, 1.0)))
+    direction = unit if unit.ndim == 2 else unit[:, sel].mean(axis=1)
+    direction = direction / np.linalg.norm(direction, axis=1, keepdims=True)
+    zenith = np.degrees(np.arccos(np.clip(direction[:, 2], -1.0, 1.0)))
     keep = zenith <= LIMITS_DEG[1] + 1e-6
     if not keep.any():
         raise ValueError("lights: no held-out light within 60 degrees of the view axis")
-    obs, lit, near = obs[keep], np.asarray(lights)[keep], zenith[keep] <= LIMITS_DEG[0] + 1e-6
+    obs, lit, near = obs[keep], unit[keep], zenith[keep] <= LIMITS_DEG[0] + 1e-6
     pixels = sel & usable_normals(normals) & np.isfinite(np.asarray(albedo))
     valid = pixels[None] & np.isfinite(obs)
     if not valid.any():
