@@ -192,3 +192,25 @@ def write_json(name: str, payload: dict) -> pathlib.Path:
     path = RESULTS / f"{name}.json"
     path.write_text(json.dumps(payload, indent=2, sort_keys=False, default=float) + "\n")
     return path
+
+
+def module_at(rev: str, path: str, folder: pathlib.Path):
+    """The jaxps module at `path` (e.g. `"src/jaxps/lights/_near.py"`) as it was at git revision
+    `rev`, loaded next to the current one as `<its package>.<its name>_before` (its source
+    written to `folder`; its relative imports reach the current tree's modules), so that a
+    benchmark can time both in one process."""
+    import importlib.util
+    import subprocess
+    import sys
+
+    source = subprocess.run(["git", "show", f"{rev}:{path}"], cwd=ROOT, check=True,
+                            capture_output=True, text=True).stdout
+    parts = pathlib.PurePosixPath(path).with_suffix("").parts[1:]  # past "src"
+    name = ".".join(parts[:-1]) + f".{parts[-1]}_before"
+    file = folder / f"{parts[-1]}_before.py"
+    file.write_text(source)
+    spec = importlib.util.spec_from_file_location(name, file)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module

@@ -22,10 +22,8 @@ interleaved calls, both compiled as the solver is) and their largest difference.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import pathlib
 import statistics
-import subprocess
 import sys
 import tempfile
 
@@ -38,29 +36,14 @@ from jaxps.core._host import NO_YNN
 from jaxps.reflectance import _brdf, _parametric
 
 try:
-    from benchmarks._common import ROOT, environment, interleaved, write_json
+    from benchmarks._common import environment, interleaved, module_at, write_json
     from benchmarks.bench_brdf import cases
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import ROOT, environment, interleaved, write_json
+    from benchmarks._common import environment, interleaved, module_at, write_json
     from benchmarks.bench_brdf import cases
 
 SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
-
-
-def module_at(rev: str, folder: pathlib.Path):
-    """`jaxps.reflectance._parametric` as it was at git revision `rev`, as a module named
-    `_parametric_before` in the same package (its source written to `folder`)."""
-    path = folder / "_parametric_before.py"
-    path.write_text(subprocess.run(
-        ["git", "show", f"{rev}:src/jaxps/reflectance/_parametric.py"], cwd=ROOT, check=True,
-        capture_output=True, text=True).stdout)
-    spec = importlib.util.spec_from_file_location(f"{_parametric.__package__}._parametric_before",
-                                                  path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def fit_with(module, c):
@@ -118,7 +101,8 @@ def main(argv=None):
     ap.add_argument("--name", default="ab_parametric")
     args = ap.parse_args(argv)
     with tempfile.TemporaryDirectory() as folder:
-        before = module_at(args.before, pathlib.Path(folder))
+        before = module_at(args.before, "src/jaxps/reflectance/_parametric.py",
+                           pathlib.Path(folder))
         rows, jac = [], None
         for c in cases(args.subjects, ["cross"]):
             if jac is None:

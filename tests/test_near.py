@@ -25,6 +25,12 @@ def test_light_field_matches_numpy():
     f_ref = (np.linalg.norm(pos, axis=-1)[:, None, None] / dist) ** 2 * cos_axis**1.5
     np.testing.assert_allclose(np.asarray(lights), l_ref, atol=1e-5)
     np.testing.assert_allclose(np.asarray(fall), f_ref, rtol=1e-4)
+    # isotropic lamps (mu = 0, the default): no lobe, the same directions
+    lights0, fall0 = jaxps.near_light_field(pos, pts)
+    np.testing.assert_array_equal(np.asarray(lights0), np.asarray(lights))
+    np.testing.assert_allclose(np.asarray(fall0),
+                               (np.linalg.norm(pos, axis=-1)[:, None, None] / dist) ** 2,
+                               rtol=1e-5)
 
 
 def _near_scene(distance_mm):

@@ -17,6 +17,8 @@ the points, and so the lights, stay where they were in the frame.
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -67,19 +69,25 @@ def _centre(centre, h, w) -> tuple[float, float]:
     return float(c[0]), float(c[1])
 
 
-@jax.jit
+@functools.partial(jax.jit, static_argnames="mu")
 def _field(positions, points, mu):
-    d = positions[:, None, None, :] - points[None]  # (K, H, W, 3)
-    dist = jnp.linalg.norm(d, axis=-1)
-    safe = jnp.maximum(dist, jnp.finfo(points.dtype).tiny)
-    lights = d / safe[..., None]
+    """The field, written per component: `(K, H, W)` planes of x, y and z, stacked once at the
+    end. As `(K, H, W, 3)` arrays with a norm over the last axis and an `einsum` for the lobe,
+    and `cos ** mu` computed everywhere under a traced `where`, a 1 MP field of five lights
+    took 92 ms (scratch), most of `near_photometric_stereo`'s time. `mu` is static: with
+    mu = 0 no power is computed."""
+    tiny = jnp.finfo(points.dtype).tiny
+    d = [positions[:, c, None, None] - points[None, ..., c] for c in range(3)]  # (K, H, W) each
+    dist = jnp.sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2])
+    safe = jnp.maximum(dist, tiny)
+    lights = [dc / safe for dc in d]
     r0 = jnp.linalg.norm(positions, axis=-1)[:, None, None]
     falloff = (r0 / safe) ** 2
-    # LED lobe: cos(angle between -l and the light's axis, which points at the origin)^mu.
-    axis = -positions / jnp.maximum(r0[:, 0], jnp.finfo(points.dtype).tiny)
-    cos_axis = jnp.maximum(jnp.einsum("khwc,kc->khw", -lights, axis), 0)
-    falloff = falloff * jnp.where(mu > 0, cos_axis ** mu, 1)
-    return lights, falloff
+    if mu > 0:  # LED lobe: cos(angle between -l and the light's axis, towards the origin)^mu
+        axis = -positions / jnp.maximum(r0[:, 0], tiny)  # (K, 3)
+        cos_axis = jnp.maximum(-sum(lights[c] * axis[:, c, None, None] for c in range(3)), 0)
+        falloff = falloff * cos_axis ** jnp.asarray(mu, points.dtype)
+    return jnp.stack(lights, axis=-1), falloff
 
 
 def near_light_field(
@@ -116,4 +124,4 @@ def near_light_field(
         raise ValueError("positions must not be at the origin (the image centre at depth 0)")
     if not (np.isfinite(mu) and mu >= 0):
         raise ValueError(f"mu must be a finite non-negative number, got {mu}")
-    return _field(positions, points, jnp.asarray(mu, points.dtype))
+    return _field(positions, points, mu=float(mu))
