@@ -290,8 +290,11 @@ def _near_intensities(cap, positions, pixel_size, centre):
         return cap
     points = surface_points(np.zeros(cap.mask.shape, np.float32), pixel_size=pixel_size,
                             centre=centre)
-    lights, falloff = (np.asarray(a, np.float64) for a in near_light_field(positions, points))
-    weight = falloff if cap.intensity_method == "mean" else falloff * lights[..., 2]
+    lights, falloff = near_light_field(positions, points)
+    # only l_z leaves the device: all of `lights` as float64 was 157 MB at 1 MP
+    falloff = np.asarray(falloff, np.float64)
+    weight = (falloff if cap.intensity_method == "mean"
+              else falloff * np.asarray(lights[..., 2], np.float64))
     near = weight[:, cap.mask].mean(axis=1)
     if cap.intensity_method == "frontal":
         near = near / (positions[:, 2] / np.linalg.norm(positions, axis=1))  # the l_z used
