@@ -1013,6 +1013,22 @@ def test_score_relighting_with_near_lamps():
     assert a.model == b.model and a.lambertian == b.lambertian and a.lights == b.lights
 
 
+def test_score_relighting_takes_one_light_as_a_3_vector():
+    """One held-out frame with its light as a `(3,)` vector (the code before indexed the
+    caller's `(3,)` array with a `(1,)` mask and raised an IndexError): a flat Lambertian
+    patch scores 0 under its own light (not the shared data)."""
+    h = w = 24
+    normals = np.zeros((h, w, 3), np.float32)
+    normals[..., 2] = 1
+    albedo = np.full((h, w), 0.5, np.float32)
+    lights = jaxps.lights_from_angles([0, 25, -25, 0, 0], [0, 0, 0, 20, -20])
+    images = np.asarray(jaxps.render_lambertian(normals, albedo, lights), np.float32)
+    model = jaxps.fit_brdf(images, normals, albedo, lights, method="lambertian")
+    score = jaxps.score_relighting(model, images[3:4], normals, albedo, np.asarray(lights)[3])
+    assert score.lights == {"30": 1, "60": 1}
+    assert score.model["raw_30"] < 1e-4 and score.lambertian["raw_30"] < 1e-4
+
+
 def test_fit_brdf_per_pixel_lights_bad_input(scene):
     images, normals, albedo, lights, mask = (scene[k] for k in
                                              ("images", "normals", "albedo", "train", "mask"))
