@@ -31,11 +31,9 @@ from __future__ import annotations
 
 import argparse
 import functools
-import importlib.util
 import pathlib
 import re
 import statistics
-import subprocess
 import sys
 import tempfile
 
@@ -47,27 +45,14 @@ import jaxps
 from jaxps.ps import _l2
 
 try:
-    from benchmarks._common import ROOT, environment, interleaved, page_faults, write_json
+    from benchmarks._common import environment, interleaved, module_at, page_faults, write_json
     from benchmarks.bench_core import ring_lights
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import ROOT, environment, interleaved, page_faults, write_json
+    from benchmarks._common import environment, interleaved, module_at, page_faults, write_json
     from benchmarks.bench_core import ring_lights
 
 H, W = 1024, 1280
-
-
-def module_at(rev: str, folder: pathlib.Path):
-    """`jaxps.ps._l2` as it was at git revision `rev`: a module named `_l2_before` in the
-    same package (its source written to `folder`)."""
-    path = folder / "_l2_before.py"
-    path.write_text(subprocess.run(["git", "show", f"{rev}:src/jaxps/ps/_l2.py"], cwd=ROOT,
-                                   check=True, capture_output=True, text=True).stdout)
-    spec = importlib.util.spec_from_file_location(f"{_l2.__package__}._l2_before", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def programs(module, k, captures=4):
@@ -116,7 +101,7 @@ def main(argv=None):
     parser.add_argument("--name", default="ab_l2", help="results/NAME.json")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as folder:
-        before = module_at(args.before, pathlib.Path(folder))
+        before = module_at(args.before, "src/jaxps/ps/_l2.py", pathlib.Path(folder))
     rows = []
     for k in (5, 12):
         now, then = programs(_l2, k), programs(before, k)
