@@ -62,6 +62,7 @@ import optimistix as optx
 from jax.flatten_util import ravel_pytree
 
 from ..core._host import NO_YNN, CpuTuned
+from ..core._reduce import sum0
 from ..core._store import call as stored_call
 from ..shading._oren_nayar import SIGMA_MAX, _shading
 
@@ -403,12 +404,6 @@ _STATIC_NAMES = ("diffuse", "specular", "n_regions", "fit_gains")
 _refine_jit = jax.jit(_refine, static_argnames=_STATIC_NAMES)
 
 
-def _frame_sum(x):
-    """Sum over the leading (frame) axis, unrolled: XLA-CPU's reduction over a short leading
-    axis was the slowest part of the Jacobian below (3.7 against 6.6 ms, scratch)."""
-    return functools.reduce(jnp.add, [x[i] for i in range(x.shape[0])])
-
-
 def _predict_and_jacobian(p, data, diffuse, specular, n_regions, fit_gains):
     """`_predict`'s `(K, P)` prediction and its `(len(p), K, P)` Jacobian with respect to the
     flat parameters `p`, the closed-form albedos differentiated by hand (variable projection:
@@ -439,7 +434,9 @@ def _predict_and_jacobian(p, data, diffuse, specular, n_regions, fit_gains):
     d, s = g * d0, g * s0
 
     def dot(a, b):  # the frames' weighted inner product, per pixel: (1, P)
-        return _frame_sum(w * a * b)[None]
+        # unrolled (`sum0`): XLA-CPU's reduction over the short frame axis was the slowest
+        # part of this Jacobian (3.7 against 6.6 ms, scratch)
+        return sum0(w * a * b)[None]
 
     # the forward solve, as `_albedos` (per-pixel terms (1, P), per-region (1, R))
     tiny = jnp.asarray(1e-12, d.dtype)
@@ -521,9 +518,7 @@ def _weighted_residuals_jvp(diffuse, specular, n_regions, fit_gains, primals, ta
     residuals = (w * (pred - y)).reshape(-1)
     if isinstance(p_dot, jax.custom_derivatives.SymbolicZero):
         return residuals, jnp.zeros_like(residuals)
-    wj = w[None] * jac
-    return residuals, functools.reduce(jnp.add, [p_dot[i] * wj[i] for i in range(p.shape[0])]
-                                       ).reshape(-1)
+    return residuals, sum0(p_dot[:, None, None] * (w[None] * jac)).reshape(-1)
 
 
 def _least_squares(p0, data, solver, diffuse, specular, n_regions, fit_gains, max_steps):
