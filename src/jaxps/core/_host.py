@@ -107,6 +107,22 @@ def has_value(array) -> bool:
     return concrete is not None and concrete() is not None
 
 
+def positive_scalar(value) -> bool:
+    """Whether `value` is a finite scalar > 0, as argument checks ask of `pixel_size`; True
+    where it has no value to test (inside `jit` or `vmap`, `has_value`). Tested with numpy
+    where it can be: a `jnp` test inside a caller's `jit` is traced, even of a constant."""
+    import jax
+    import jax.numpy as jnp
+
+    if np.ndim(value) != 0:
+        return False
+    if not has_value(value):
+        return True
+    if isinstance(value, jax.core.Tracer):  # `jax.grad`'s, outside `jit`: it has a value
+        return bool(jnp.isfinite(value) & (value > 0))
+    return bool(np.isfinite(value) and value > 0)
+
+
 def cpu_top_level(*trees) -> bool:
     """Whether a jitted call with these arguments runs as its own program on the CPU: no
     argument is a tracer (JAX accepts `compiler_options` on top-level jits only; inside a

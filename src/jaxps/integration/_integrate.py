@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ..core._host import cpu_top_level, has_value, to_device
+from ..core._host import cpu_top_level, has_value, positive_scalar, to_device
 from ..core._kept import (
     _HEIGHTS,
     _INTEGRATE_SCRATCH,
@@ -651,11 +651,7 @@ def integrate(
     """
     if method not in INTEGRATION_METHODS:
         raise ValueError(f"method must be one of {INTEGRATION_METHODS}, got {method!r}")
-    if isinstance(pixel_size, jax.Array):  # also a traced one (jax.grad; not checked in jit)
-        ok = not has_value(pixel_size) or bool(jnp.isfinite(pixel_size) & (pixel_size > 0))
-    else:
-        ok = bool(np.isfinite(pixel_size) and pixel_size > 0)
-    if not ok:
+    if not positive_scalar(pixel_size):  # not checked inside jit or vmap
         raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     if not (np.isfinite(k) and k > 0):
         raise ValueError(f"k must be positive, got {k}")
@@ -681,9 +677,10 @@ def integrate(
         return out.astype(normals.dtype)
     dtype = normals.dtype
     cam = _check_intrinsics(intrinsics)
-    # Inside `jit` or `vmap` the normals (or the mask) have no value yet: nothing can be
-    # counted, cropped or checked on the host, so only the FFT methods are traced.
-    traced = count is None or not has_value(normals)
+    # Inside `jit` or `vmap` the normals (or the mask, or pixel_size) have no value yet:
+    # nothing can be counted, cropped or checked on the host, so only the FFT methods are
+    # traced.
+    traced = count is None or not has_value(normals) or not has_value(pixel_size)
     if traced and method not in ("fc", "dct"):
         raise ValueError(
             f"method={method!r} crops to the mask and checks its tolerance on the host, so it "
@@ -799,8 +796,7 @@ def normals_from_height(
         raise ValueError(f"z must be a 2-D height map of at least 2x2, got shape {z.shape}")
     if not jnp.issubdtype(z.dtype, jnp.floating):
         z = z.astype(jnp.float32)
-    if not isinstance(pixel_size, jax.core.Tracer) and not (
-            np.ndim(pixel_size) == 0 and np.isfinite(pixel_size) and pixel_size > 0):
+    if not positive_scalar(pixel_size):
         raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     if mask is None:
         return _normals_from_height(z, jnp.asarray(pixel_size, z.dtype))

@@ -24,6 +24,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
+from ..core._host import has_value, positive_scalar
+
 __all__ = ["near_light_field", "surface_points"]
 
 
@@ -46,7 +48,7 @@ def surface_points(height: Float[ArrayLike, "H W"], *, pixel_size: float = 1.0,
         raise ValueError(f"height must be (H, W), got shape {height.shape}")
     if not jnp.issubdtype(height.dtype, jnp.floating):
         height = height.astype(jnp.float32)
-    if not (np.isfinite(pixel_size) and pixel_size > 0):
+    if not positive_scalar(pixel_size):
         raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     h, w = height.shape
     row, col = _centre(centre, h, w)
@@ -118,10 +120,11 @@ def near_light_field(
         raise ValueError(f"positions must be (K, 3), got shape {positions.shape}")
     if points.ndim != 3 or points.shape[-1] != 3:
         raise ValueError(f"points must be (H, W, 3), got shape {points.shape}")
-    if not bool(jnp.all(jnp.isfinite(positions))):
-        raise ValueError("positions contain NaN or Inf")
-    if bool(jnp.any(jnp.linalg.norm(positions, axis=-1) == 0)):
-        raise ValueError("positions must not be at the origin (the image centre at depth 0)")
+    if has_value(positions):  # inside `jit` or `vmap` the caller keeps them valid
+        if not bool(jnp.all(jnp.isfinite(positions))):
+            raise ValueError("positions contain NaN or Inf")
+        if bool(jnp.any(jnp.linalg.norm(positions, axis=-1) == 0)):
+            raise ValueError("positions must not be at the origin (the image centre at depth 0)")
     if not (np.isfinite(mu) and mu >= 0):
         raise ValueError(f"mu must be a finite non-negative number, got {mu}")
     return _field(positions, points, mu=float(mu))

@@ -42,6 +42,7 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ..core._batched_lm import BatchedLM, solve_pixels
+from ..core._host import has_value
 from ..core._reduce import sum0
 from ..core._safe import safe_sqrt
 from ..core._status import Status, first_status
@@ -142,7 +143,14 @@ def oren_nayar(
     theta_r = jnp.asarray(theta_r, dtype)
     delta_phi = jnp.asarray(delta_phi, dtype)
     sigma = jnp.asarray(sigma, dtype)
-    if bool(jnp.any(sigma < 0)):
+    try:
+        jnp.broadcast_shapes(theta_i.shape, theta_r.shape, delta_phi.shape, sigma.shape)
+    except ValueError:
+        raise ValueError(f"theta_i, theta_r, delta_phi and sigma must broadcast together, got "
+                         f"shapes {theta_i.shape}, {theta_r.shape}, {delta_phi.shape} and "
+                         f"{sigma.shape}") from None
+    # Checked where it has a value: inside `jit` or `vmap` the caller keeps sigma >= 0.
+    if has_value(sigma) and bool(jnp.any(sigma < 0)):
         raise ValueError("sigma must be >= 0 (radians)")
     ci, cr = jnp.cos(theta_i), jnp.cos(theta_r)
     p = jnp.cos(delta_phi) * jnp.sin(theta_i) * jnp.sin(theta_r)
