@@ -27,6 +27,11 @@ def flash_visibility(lights: Float[ArrayLike, "K 3"]) -> Float[Array, ""] | np.f
     lights near the view axis, $\\delta$ linear in the lights' offsets nearly is such a change
     and tilts the recovered face. Scale-free; measured values and what they did on real
     faces are in docs/captures.md ("Which lights can self-calibrate").
+
+    Works on numpy lights (float64, on the host) and inside `jit`. `jax.grad` gives its
+    derivative in the lights where that smallest value is simple (a symmetric layout such as
+    the five-light cross repeats it, where only one-sided derivatives exist), so a lamp
+    layout can be optimised for it.
     """
     return visibility_spectrum(lights)[np.shape(lights)[0] - 2]
 
@@ -44,6 +49,10 @@ def visibility_spectrum(lights):
         bad = np.flatnonzero(~(np.isfinite(norms[:, 0]) & (norms[:, 0] > 0))).tolist()
         raise ValueError(f"lights must be finite, non-zero directions; rows {bad} are not")
     lights = lights / norms
-    null = xp.linalg.svd(lights, full_matrices=True)[0][:, 3:].T
-    jac = (null[:, :, None] * lights[None]).transpose(0, 2, 1).reshape(-1, lights.shape[0])
-    return xp.linalg.svd(jac, compute_uv=False)
+    k = lights.shape[0]
+    # N^T N is the projector onto the null space of L^T, and N^T keeps lengths, so the
+    # projector gives the same singular values as N (and K - 3 more zeros for K = 4). Unlike
+    # a full SVD's basis it has a derivative: `jax.grad` passes through `flash_visibility`.
+    proj = xp.eye(k) - lights @ xp.linalg.solve(lights.T @ lights, lights.T)
+    jac = (proj[:, :, None] * lights[None]).transpose(0, 2, 1).reshape(-1, k)
+    return xp.linalg.svd(jac, compute_uv=False)[:min(3 * (k - 3), k)]
