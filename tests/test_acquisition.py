@@ -323,6 +323,35 @@ def test_face_detection_on_padded_tight_crop(data):
     # The box contains the image centre (the nose), not a cheek off to one side.
     assert t < 96 < t + h and l < 84 < l + w
     assert acq.detect_face(np.zeros((100, 100), np.float32)) is None
+    # A few dead (NaN) pixels leave the face where it was; before, they made the whole
+    # stretched image NaN and the cascade found nothing.
+    dead = img.copy()
+    dead[::37, ::41] = np.nan
+    got = acq.detect_face(dead)
+    assert got is not None and np.abs(np.subtract(got, box)).max() <= 3, (got, box)
+
+
+def test_face_detection_and_crop_reject_bad_arguments():
+    img = np.zeros((60, 50), np.float32)
+    for kwargs, match in (({"pad": -0.1}, "pad must be"), ({"min_size": 0}, "min_size must"),
+                          ({"min_size": 2.5}, "min_size must")):
+        with pytest.raises(ValueError, match=match):
+            acq.detect_face(img, **kwargs)
+    with pytest.raises(ValueError, match=r"image must be a non-empty \(H, W\)"):
+        acq.detect_face(img[0])  # OpenCV's own error before
+    stack = np.arange(2 * 6 * 5, dtype=np.float32).reshape(2, 6, 5)
+    np.testing.assert_array_equal(acq.crop(stack, (1, 2, 3, 2), axis=1), stack[:, 1:4, 2:4])
+    np.testing.assert_array_equal(acq.crop(stack[0], (0, 0, 6, 5)), stack[0])
+    # A box over an edge, or with no pixels, raises instead of returning a smaller crop.
+    for box in ((4, 0, 3, 5), (0, -1, 2, 2), (1, 1, 0, 2), (1, 1, -2, 2)):
+        with pytest.raises(ValueError, match="does not lie inside the image's 6 x 5 pixels"):
+            acq.crop(stack, box, axis=1)
+    with pytest.raises(ValueError, match="two image axes"):
+        acq.crop(stack, (0, 0, 1, 1), axis=2)
+    with pytest.raises(ValueError, match="threshold must be a number, 'otsu' or None"):
+        acq.mask_from_intensity(stack, threshold="auto")
+    with pytest.raises(ValueError, match="threshold must be finite"):
+        acq.mask_from_intensity(stack, threshold=float("nan"))
 
 
 def test_psm_capture_colour_linear_with_mask(data):

@@ -120,6 +120,9 @@ def test_icp_rejects_bad_input(face_points):
     bad[0, 0] = np.nan
     with pytest.raises(ValueError, match="target"):
         ev.icp(face_points, bad)
+    for neighbours in (0, 2, 4.5):  # silently taken as 3 (or 4) before
+        with pytest.raises(ValueError, match="neighbours must be an int >= 3"):
+            ev.estimate_normals(face_points, neighbours=neighbours)
 
 
 def test_points_from_depth_back_projects_like_pinhole():

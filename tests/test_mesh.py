@@ -47,6 +47,9 @@ def test_to_trimesh_rejects_bad_shapes(recon):
         to_trimesh(height, mask, normals=normals[..., :2])
     with pytest.raises(ValueError, match="mask"):
         to_trimesh(height, np.zeros_like(mask))
+    for bad in (0.0, -0.5, float("inf")):  # a flat or mirrored mesh before
+        with pytest.raises(ValueError, match="pixel_size must be positive and finite"):
+            to_trimesh(height, mask, pixel_size=bad)
 
 
 def test_written_files_load_back(recon, tmp_path):

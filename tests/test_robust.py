@@ -6,7 +6,7 @@ import pytest
 
 import jaxps
 from jaxps.evaluate import angular_stats
-from jaxps.stability import render_corrupted, ring_lights
+from jaxps.stability import cast_shadow_mask, perturb_lights, render_corrupted, ring_lights
 
 ROBUST = ("barsky", "irls", "sbl")
 
@@ -376,3 +376,29 @@ def test_l1_status_codes_and_bad_input():
     field = np.broadcast_to(lights[:, None, None], (4, 2, 3, 3))
     with pytest.raises(ValueError, match="shared"):
         jaxps.photometric_stereo(images, field, method="l1")
+
+
+def test_scene_helpers_reject_bad_arguments():
+    # Each of these returned a wrong array, or failed inside jax or numpy, before.
+    height = np.zeros((8, 6), np.float32)
+    lights = ring_lights(5, 30.0)
+    with pytest.raises(ValueError, match=r"lights must be \(K, 3\)"):
+        cast_shadow_mask(height, lights[:, :2])
+    with pytest.raises(ValueError, match=r"height must be \(H, W\)"):
+        cast_shadow_mask(height[0], lights)
+    with pytest.raises(ValueError, match="n_steps must be a positive int"):
+        cast_shadow_mask(height, lights, n_steps=0)
+    with pytest.raises(ValueError, match="zenith_deg must be in"):
+        ring_lights(5, 95.0)
+    with pytest.raises(ValueError, match="angle_deg must be finite"):
+        perturb_lights(lights, float("nan"), key=0)
+    with pytest.raises(ValueError, match="non-zero directions"):
+        perturb_lights(np.zeros((3, 3)), 2.0, key=0)
+    surface = jaxps.synthetic.face_like(8, 6)
+    with pytest.raises(ValueError, match=r"lights must be \(K, 3\) or \(K, H, W, 3\)"):
+        render_corrupted(surface, lights[:, :2])
+    # the rotation is exactly the angle asked for, either way round
+    for angle in (3.0, -3.0):
+        moved = perturb_lights(lights, angle, key=1)
+        cos = np.sum(moved * lights, axis=-1) / np.linalg.norm(moved, axis=-1)
+        np.testing.assert_allclose(np.degrees(np.arccos(np.clip(cos, -1, 1))), 3.0, atol=1e-3)

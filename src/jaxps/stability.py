@@ -58,6 +58,9 @@ def ring_lights(k: int, zenith_deg: float = 35.0, *, centre: bool = True) -> Flo
     `zenith_deg` around it, starting at the image's right. `(K, 3)` float32 unit vectors."""
     if k < 3:
         raise ValueError(f"k must be at least 3, got {k}")
+    if not 0 <= zenith_deg < 90:
+        raise ValueError(f"zenith_deg must be in [0, 90) (lights above the horizon), got "
+                         f"{zenith_deg}")
     m = k - 1 if centre else k
     phi = 2 * np.pi * np.arange(m) / m
     t = np.radians(zenith_deg)
@@ -74,9 +77,16 @@ def perturb_lights(lights: Float[ArrayLike, "K 3"], angle_deg: float, *,
 
     `key` is a JAX PRNG key or an int seed (`jax.random.key(seed)`).
     """
-    key = as_key(key)
     lights = np.asarray(lights, np.float64)
-    lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)
+    if lights.ndim != 2 or lights.shape[1] != 3:
+        raise ValueError(f"lights must be (K, 3), got shape {lights.shape}")
+    length = np.linalg.norm(lights, axis=-1, keepdims=True)
+    if not np.all(np.isfinite(length) & (length > 0)):
+        raise ValueError("lights must be finite, non-zero directions")
+    if not np.isfinite(angle_deg):
+        raise ValueError(f"angle_deg must be finite, got {angle_deg}")
+    key = as_key(key)
+    lights = lights / length
     r = np.asarray(jax.random.normal(key, lights.shape), np.float64)
     perp = r - np.sum(r * lights, axis=-1, keepdims=True) * lights
     perp /= np.linalg.norm(perp, axis=-1, keepdims=True)
@@ -121,6 +131,12 @@ def cast_shadow_mask(height: Float[ArrayLike, "H W"], lights: Float[ArrayLike, "
     """
     height = jnp.asarray(height, jnp.float32)
     lights = jnp.asarray(lights, jnp.float32)
+    if height.ndim != 2:
+        raise ValueError(f"height must be (H, W), got shape {height.shape}")
+    if lights.ndim != 2 or lights.shape[1] != 3:
+        raise ValueError(f"lights must be (K, 3), got shape {lights.shape}")
+    if not (isinstance(n_steps, (int, np.integer)) and n_steps >= 1):
+        raise ValueError(f"n_steps must be a positive int, got {n_steps!r}")
     return _cast_shadows(height, lights, n_steps)
 
 
@@ -166,7 +182,7 @@ def render_corrupted(
         albedo = 0.65 + 0.2 * np.sin(x / 9.0) * np.cos(y / 13.0)
     albedo = jnp.where(mask, jnp.asarray(albedo, jnp.float32), 0)
     lights = jnp.asarray(lights, jnp.float32)
-    if lights.ndim == 2:
+    if lights.ndim == 2 and lights.shape[1] == 3:
         lpix = jnp.broadcast_to(lights[:, None, None, :], (lights.shape[0], h, w, 3))
     elif lights.shape[1:] == (h, w, 3):
         lpix = lights

@@ -22,11 +22,20 @@ def detect_face(
 
     **Returns:** `(top, left, height, width)` in `image`'s pixels, clipped to the image, or None.
     """
+    img = np.asarray(image, dtype=np.float32)
+    if img.ndim not in (2, 3) or img.size == 0:
+        raise ValueError(f"image must be a non-empty (H, W) or (H, W, C) array, got shape "
+                         f"{img.shape}")
+    if not (np.isfinite(pad) and pad >= 0):
+        raise ValueError(f"pad must be finite and >= 0 (a fraction of the image's size), "
+                         f"got {pad}")
+    if not (isinstance(min_size, (int, np.integer)) and min_size >= 1):
+        raise ValueError(f"min_size must be a positive int (pixels), got {min_size!r}")
     import cv2
 
-    img = np.asarray(image, dtype=np.float32)
     if img.ndim == 3:
         img = img.mean(axis=-1)
+    img = np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0)  # a dead pixel is no face
     # Cascades were trained on gamma-encoded 8-bit images: stretch to the 99th percentile.
     top = float(np.percentile(img, 99)) or 1.0
     grey8 = (np.clip(img / top, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
@@ -48,8 +57,20 @@ def detect_face(
 
 
 def crop(array: np.ndarray, box: tuple[int, int, int, int], *, axis: int = 0) -> np.ndarray:
-    """Crop the two image axes starting at `axis` (0 for `(H, W, ...)`, 1 for `(K, H, W, ...)`)."""
-    t, l, h, w = box
+    """Crop the two image axes starting at `axis` (0 for `(H, W, ...)`, 1 for `(K, H, W, ...)`).
+
+    `box` is `(top, left, height, width)` (as `detect_face` and `bucket_box` return it) and
+    must lie inside the image: a box that runs over an edge raises rather than return a
+    smaller crop than asked for.
+    """
+    t, l, h, w = (int(v) for v in box)
+    full = np.shape(array)[axis:axis + 2]
+    if len(full) != 2:
+        raise ValueError(f"array must have two image axes from axis={axis}, got shape "
+                         f"{np.shape(array)}")
+    if not (h >= 1 and w >= 1 and 0 <= t and t + h <= full[0] and 0 <= l and l + w <= full[1]):
+        raise ValueError(f"box (top, left, height, width) = {tuple(box)} does not lie inside "
+                         f"the image's {full[0]} x {full[1]} pixels")
     index = (slice(None),) * axis + (slice(t, t + h), slice(l, l + w))
     return array[index]
 

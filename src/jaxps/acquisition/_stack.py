@@ -61,6 +61,10 @@ def mask_from_intensity(
     """
     from scipy import ndimage
 
+    if isinstance(threshold, str) and threshold != "otsu":
+        raise ValueError(f"threshold must be a number, 'otsu' or None, got {threshold!r}")
+    if threshold is not None and not isinstance(threshold, str) and not np.isfinite(threshold):
+        raise ValueError(f"threshold must be finite, got {threshold}")
     mean = np.asarray(images, dtype=np.float32).mean(axis=0)
     if mean.ndim == 3:
         mean = mean.mean(axis=-1)

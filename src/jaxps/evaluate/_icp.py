@@ -172,12 +172,17 @@ def estimate_normals(
     """Unit normals of a point cloud from the smallest principal axis of each point's neighbours.
 
     Oriented toward the viewer of DESIGN.md ($n_z \\ge 0$), which suits height maps and scans
-    taken from the camera. `tree` may pass a prebuilt `cKDTree` of `points`.
+    taken from the camera. `neighbours`: how many nearest points, the point itself included,
+    each plane is fitted to (at least 3; a cloud of fewer points uses them all). `tree` may
+    pass a prebuilt `cKDTree` of `points`.
 
     **Returns:** `(N, 3)` unit normals in the dtype of `points`.
     """
     pts = _check_points(points, "points")
-    k = int(min(max(neighbours, 3), pts.shape[0]))
+    if not (isinstance(neighbours, (int, np.integer)) and neighbours >= 3):
+        raise ValueError(f"neighbours must be an int >= 3 (a plane needs three points), got "
+                         f"{neighbours!r}")
+    k = int(min(neighbours, pts.shape[0]))
     from scipy.spatial import cKDTree  # SciPy loads when first used
 
     tree = cKDTree(pts) if tree is None else tree

@@ -18,6 +18,8 @@ def _grid_mesh(height, mask, pixel_size):
     """Vertices `(V, 3)` (x right, y up, z = height), triangles `(F, 3)` and the `(V,)` rows and
     columns of the pixels they come from; each 2x2 block of valid pixels gives two triangles
     wound toward the viewer."""
+    if not (np.ndim(pixel_size) == 0 and np.isfinite(pixel_size) and pixel_size > 0):
+        raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     h, w = height.shape
     index = np.full((h, w), -1, np.int64)
     index[mask] = np.arange(mask.sum())
