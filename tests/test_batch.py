@@ -490,6 +490,9 @@ def test_cli_many_folders(tmp_path, capsys):
     assert list(table[0]) == list(summary[0])
     assert "no frame files" in table[2]["error"] and table[0]["error"] == ""
     assert float(table[0]["ok_%"]) == pytest.approx(summary[0]["ok_%"])
+    # A method no capture can use is the caller's error, not a row per capture's.
+    with pytest.raises(ValueError, match="method must be one of"):
+        jaxps.reconstruct_many(folders, method="L2", lights=str(light_file), progress=False)
 
 
 def test_batch_sharded_over_two_host_devices():

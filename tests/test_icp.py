@@ -216,3 +216,13 @@ def test_jaxtyping_annotations_hold(face_points):
     comp = checked["compare_to_scan"](height, pts, mask=mask, normals=np.asarray(surf.normals),
                                       scale=False, max_steps=5)
     assert comp.rms_height < 1e-3
+
+
+def test_plot_error_maps_names_maps_of_another_shape():
+    a = np.zeros((6, 5))
+    with pytest.raises(ValueError, match=r"maps must share one \(H, W\) shape"):
+        ev.plot_error_maps({"a": a, "b": a[:-1]})  # drawn side by side, silently, before
+    with pytest.raises(ValueError, match=r"mask must have the maps' shape \(6, 5\)"):
+        ev.plot_error_maps({"a": a}, mask=np.ones((5, 5), bool))  # numpy's broadcast error
+    with pytest.raises(ValueError, match=r"map 'a' must be \(H, W\)"):
+        ev.plot_error_maps({"a": a[0]})

@@ -70,6 +70,14 @@ def test_every_frame_flagged_raises_with_reasons():
         jaxps.drop_flagged(frames, scene.lights, report)
 
 
+def test_thresholds_out_of_range_are_named():
+    scene, frames = _frames()
+    for kwargs in ({"comb": -1.0}, {"dark_fraction": 1.5}, {"row_z": float("nan")}):
+        name = next(iter(kwargs))
+        with pytest.raises(ValueError, match=rf"thresholds must be(.|\n)*{name}="):
+            jaxps.check_frames(frames, thresholds=jaxps.QualityThresholds(**kwargs))
+
+
 def test_check_file_truncated_pgm(tmp_path):
     img = (np.arange(40 * 30) % 256).astype(np.uint8).reshape(40, 30)
     path = tmp_path / "a.pgm"

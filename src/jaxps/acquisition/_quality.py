@@ -237,6 +237,12 @@ def check_frames(
     if not isinstance(thresholds, QualityThresholds):
         raise TypeError(f"thresholds must be a QualityThresholds (the defaults: "
                         f"QualityThresholds()), got {type(thresholds).__name__}")
+    bad = [f"{name}={value!r}" for name, value in thresholds._asdict().items()
+           if not (np.isfinite(value) and value >= 0
+                   and (value <= 1 or not name.endswith(("fraction", "all", "level"))))]
+    if bad:
+        raise ValueError(f"thresholds must be finite and >= 0, and the fractions and levels "
+                         f"at most 1; got {', '.join(bad)}")
     names = [f"frame {i}" for i in range(k)] if names is None else [str(n) for n in names]
     if len(names) != k:
         raise ValueError(f"names has {len(names)} entries for K={k} frames")

@@ -20,7 +20,7 @@ from ..core import Status, status_counts
 from ..integration import integrate
 from ..lights import near_light_field, surface_points
 from ..lights._directions import _read_xyz
-from ..ps import PSResult, near_photometric_stereo, photometric_stereo
+from ..ps import PS_METHODS, PSResult, near_photometric_stereo, photometric_stereo
 from ..report._mesh import write_meshes
 from ..report._writers import (
     write_albedo,
@@ -410,6 +410,8 @@ def reconstruct_many(
     """
     from tqdm.auto import tqdm
 
+    if method not in PS_METHODS:  # every capture's row would carry the same error
+        raise ValueError(f"method must be one of {PS_METHODS}, got {method!r}")
     positions = None
     if light_positions is not None or pixel_size is not None:
         positions = _positions(light_positions, pixel_size, load_options.get("lights"),

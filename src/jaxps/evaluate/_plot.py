@@ -41,6 +41,15 @@ def plot_error_maps(
 
     if not maps:
         raise ValueError("maps is empty: nothing to draw")
+    shapes = {name: np.shape(arr) for name, arr in maps.items()}
+    for name, shape in shapes.items():
+        if len(shape) != 2:
+            raise ValueError(f"map {name!r} must be (H, W), got shape {shape}")
+    if len(set(shapes.values())) > 1:
+        raise ValueError(f"maps must share one (H, W) shape, got {shapes}")
+    (shape,) = set(shapes.values())
+    if mask is not None and np.shape(mask) != shape:
+        raise ValueError(f"mask must have the maps' shape {shape}, got {np.shape(mask)}")
     units = units or {}
     vmax = vmax or {}
     crop = (slice(None), slice(None))
@@ -52,8 +61,6 @@ def plot_error_maps(
     fig, axes = plt.subplots(1, len(maps), figsize=(4.2 * len(maps), 4.0), squeeze=False)
     for ax, (name, arr) in zip(axes[0], maps.items()):
         a = np.asarray(arr, np.float64)
-        if a.ndim != 2:
-            raise ValueError(f"map {name!r} must be (H, W), got shape {a.shape}")
         sel = np.isfinite(a) if mask is None else (np.asarray(mask, bool) & np.isfinite(a))
         vals = np.abs(a[sel]) if sel.any() else np.zeros(1)
         top = vmax.get(name, float(np.percentile(vals, 98)) or 1.0)
