@@ -120,6 +120,11 @@ def test_icp_rejects_bad_input(face_points):
     bad[0, 0] = np.nan
     with pytest.raises(ValueError, match="target"):
         ev.icp(face_points, bad)
+    line = np.zeros((20, 3))
+    line[:, 0] = np.arange(20.0)
+    for source, target in ((line, face_points), (face_points, np.ones((20, 3)))):
+        with pytest.raises(ValueError, match="lie on one line"):  # scipy's error from NaNs
+            ev.icp(source, target)
     for neighbours in (0, 2, 4.5):  # silently taken as 3 (or 4) before
         with pytest.raises(ValueError, match="neighbours must be an int >= 3"):
             ev.estimate_normals(face_points, neighbours=neighbours)

@@ -62,6 +62,23 @@ def test_near_iteration_beats_distant_assumption():
     assert np.all(np.diff(near.changes) <= 0) or near.changes[-1] < near.changes[0]
 
 
+def test_near_in_float16_is_solved_in_float32():
+    # Lamps 400 mm away: their squared distance is past float16's range, and the fall-off and
+    # every output were NaN before.
+    surf, positions, height_mm, scene = _near_scene(400.0)
+    mask = np.asarray(surf.mask)
+    half = np.asarray(scene.images, np.float16)
+    kwargs = dict(mask=mask, height0=float(height_mm[mask].mean()), pixel_size=PIXEL_MM,
+                  max_steps=4)
+    got = jaxps.near_photometric_stereo(half, positions, **kwargs)
+    want = jaxps.near_photometric_stereo(half.astype(np.float32), positions, **kwargs)
+    assert got.height.dtype == got.ps.normals.dtype == got.falloff.dtype == np.float16
+    assert got.steps == want.steps
+    np.testing.assert_array_equal(got.ps.status, want.ps.status)
+    np.testing.assert_array_equal(got.height, np.asarray(want.height).astype(np.float16))
+    assert angular_stats(got.ps.normals, surf.normals, mask=mask)["mean_deg"] < 1.0
+
+
 def test_near_step_limit_and_bad_input():
     surf, positions, height_mm, scene = _near_scene(400.0)
     res = jaxps.near_photometric_stereo(scene.images, positions, mask=surf.mask,

@@ -231,6 +231,8 @@ def check_frames(
         raise ValueError(
             f"frames must be floating (K, H, W) or (K, H, W, C), got {frames.shape} {frames.dtype}"
         )
+    if frames.dtype.itemsize < 4:  # float16, bfloat16: numpy's einsum takes no bfloat16
+        frames = frames.astype(np.float32)
     k, h, w = frames.shape[:3]
     if h < _MIN_ROWS or w < _MIN_COLS:
         raise ValueError(f"frames must be at least {_MIN_ROWS}x{_MIN_COLS} pixels, got {h}x{w}")

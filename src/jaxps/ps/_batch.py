@@ -196,7 +196,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
     in after its solve (docs/speed.md, "Many captures")."""
     n, h, w = images.shape[0], images.shape[2], images.shape[3]
     dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
-    solve_dtype = np.float32 if dtype == np.float16 else dtype
+    solve_dtype = np.float32 if jnp.finfo(dtype).bits < 32 else dtype  # float16, bfloat16
     thresholds = tuple(jnp.asarray(t, solve_dtype) for t in _sample_thresholds(**options))
     lights = np.asarray(lights, np.float64)
     lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)

@@ -604,7 +604,7 @@ def l2_needs_weights(images, mask, sample_mask, thresholds):
     C])`, `mask` `(H, W)` or None (every pixel), `sample_mask` `(K, H, W)` or None and
     `thresholds` (cast to the images' dtype here) as `ps_l2` takes them (the flags do
     not depend on the lights)."""
-    if images.dtype == jnp.float16:
+    if jnp.finfo(images.dtype).bits < 32:  # float16, bfloat16
         images = images.astype(jnp.float32)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
     return _max_flags(_flags(images, mask, sample_mask, thresholds))
@@ -645,7 +645,7 @@ def branch_of(flags: int) -> str:
 def l2_batch_flags(images, mask, sample_mask, thresholds):
     """`l2_needs_weights` of each capture of a stack: `(N,)` int32. `images`, `mask`,
     `sample_mask` and `thresholds` as `l2_batch_solve` takes them."""
-    if images.dtype == jnp.float16:
+    if jnp.finfo(images.dtype).bits < 32:  # float16, bfloat16
         images = images.astype(jnp.float32)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
     return _max_flags(_flags(images, mask, sample_mask, thresholds, flat=False, batched=True),
@@ -655,7 +655,7 @@ def l2_batch_flags(images, mask, sample_mask, thresholds):
 def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, dtype):
     """The every-sample-used solve of a stack (`l2_batch_solve`), in one program; `lights`
     is unused (their constants are in `shared`), taken so that both solves share arguments."""
-    if images.dtype == jnp.float16:
+    if jnp.finfo(images.dtype).bits < 32:  # float16, bfloat16
         images = images.astype(jnp.float32)
     res = _solve_all_used(images, mask, sample_mask, thresholds,
                           _cast_shared(shared, images.dtype), flat=False, batched=True)
@@ -673,7 +673,7 @@ def _batch_planes(scratch, images, lights, mask, sample_mask, thresholds, branch
     last. `scratch`: `(planes, n_used)` of an earlier call of the same shapes, either None,
     donated: XLA writes the outputs into their buffers."""
     del scratch
-    if images.dtype == jnp.float16:
+    if jnp.finfo(images.dtype).bits < 32:  # float16, bfloat16
         images = images.astype(jnp.float32)
     return _weighted_planes(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
                             flat=False, all_finite=branch == "weighted_finite", batched=True,
@@ -716,10 +716,10 @@ def l2_batch_solve(images, lights, mask, sample_mask, thresholds, shared, *, bra
     stack, on all threads, written straight into its `(N, ...)` array (no per-capture
     program, no copy).
 
-    `images` `(N, K, H, W[, C])` (float16 is solved in float32); `lights` `(K, 3)` unit
-    vectors shared by all, or `(N, K, 3)`; `mask` `(N, H, W)`, one plane per capture even
-    where they are the same: with one `(H, W)` plane broadcast inside, XLA-CPU wrote $|b|$
-    and $1/|b|$ to memory (6 fusions against 4, `benchmarks/hlo_l2.py`), as `_finish`
+    `images` `(N, K, H, W[, C])` (float16 and bfloat16 are solved in float32); `lights`
+    `(K, 3)` unit vectors shared by all, or `(N, K, 3)`; `mask` `(N, H, W)`, one plane per
+    capture even where they are the same: with one `(H, W)` plane broadcast inside, XLA-CPU
+    wrote $|b|$ and $1/|b|$ to memory (6 fusions against 4, `benchmarks/hlo_l2.py`), as `_finish`
     describes; `sample_mask` `(N, K, H, W)` or None; `shared`: `host_constants(lights)`, or
     each capture's stacked along a leading N axis; `branch`
     (`branch_of` the or of `l2_batch_flags`): the solve every capture takes, so one capture

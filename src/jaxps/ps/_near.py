@@ -79,9 +79,24 @@ def near_photometric_stereo(
     - `method`, `**options`: the per-pixel solver and its options (`photometric_stereo`).
     - `max_steps`, `tol`: outer step limit and height tolerance.
 
-    **Returns:** `NearResult`.
+    **Returns:** `NearResult`, in the dtype of `images` (float16 and bfloat16 frames are solved
+    in float32).
     """
     images = jnp.asarray(_check_images(images)[0])  # floating (K, H, W[, C]), else a ValueError
+    if jnp.finfo(images.dtype).bits < 32:
+        # A lamp a metre away is ~1e6 square millimetres off, past float16's range (the fall-off
+        # was NaN): solve in float32, answer in the images' dtype.
+        out = near_photometric_stereo(
+            images.astype(jnp.float32), positions, mask=mask, height0=height0,
+            pixel_size=pixel_size, centre=centre, mu=mu, method=method, max_steps=max_steps,
+            tol=tol, **options)
+        def narrow(a):
+            return a.astype(images.dtype)
+
+        return out._replace(ps=out.ps._replace(**{f: narrow(getattr(out.ps, f)) for f in
+                                                  ("normals", "albedo", "residual")}),
+                            height=narrow(out.height), lights=narrow(out.lights),
+                            falloff=narrow(out.falloff))
     k, h, w = images.shape[:3]
     positions = np.asarray(positions, np.float64)
     if positions.shape != (k, 3):

@@ -205,7 +205,8 @@ def photometric_stereo(
     - `**options`: passed to the chosen solver (e.g. step limits of iterative methods).
 
     **Returns:** a `PSResult` (normals `(H, W, 3)`, albedo `(H, W)` or `(H, W, C)`, status,
-    n_used, residual), in the floating dtype of `images`.
+    n_used, residual), in the floating dtype of `images` (float16 and bfloat16 frames are
+    solved in float32).
 
     For `"l2"` on a grey stack with shared lights, a call on the CPU outside any
     `jit`/`grad`/`vmap` runs a program of its own that holds the flag pass (does any pixel
@@ -388,7 +389,7 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
     no all-true mask at all: as an operand of its `switch` one was written on every call.
     """
     out_dtype = images.dtype
-    dtype = jnp.float32 if images.dtype == jnp.float16 else images.dtype
+    dtype = jnp.float32 if jnp.finfo(images.dtype).bits < 32 else images.dtype
     grey = images.ndim == 3
     images = images.astype(dtype)
     # L2 takes grey stacks as they are: a channel axis added here is fused into each pass of

@@ -331,11 +331,12 @@ def _fit_stats(pred, target):
 
 
 def _check_images(images):
-    """`images` (an array) if it is a floating `(K, H, W)` stack, else `ValueError`."""
+    """`images` (an array) if it is a floating `(K, H, W)` stack, else `ValueError`; float16
+    and bfloat16 as float32 (optimistix's solves failed on them)."""
     if not jnp.issubdtype(images.dtype, jnp.floating) or images.ndim != 3:
         raise ValueError(
             f"images must be a floating (K, H, W) grey stack, got {images.dtype} {images.shape}")
-    return images
+    return images.astype(jnp.float32) if jnp.finfo(images.dtype).bits < 32 else images
 
 
 def _check_inputs(images, normals, albedo, lights, mask):
