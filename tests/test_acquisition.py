@@ -34,6 +34,29 @@ def test_shared_16bit_normal_map(data):
     assert np.median(v[:, 2]) > 0.5  # z toward the viewer
 
 
+def test_pgm_maxval_of_a_12_bit_camera_reads_as_one(tmp_path):
+    codes = np.array([[0, 1000, 4095], [2048, 4095, 7]], np.uint16)
+    binary = tmp_path / "f0.pgm"  # 16-bit big-endian samples, maxval 4095
+    binary.write_bytes(b"P5\n# a camera's comment\n3 2\n4095\n" + codes.astype(">u2").tobytes())
+    text = tmp_path / "f1.pgm"
+    text.write_text("P2\n3 2 4095\n" + " ".join(map(str, codes.ravel())) + "\n")
+    for path in (binary, text):
+        np.testing.assert_allclose(acq.read_image(path), codes / 4095, rtol=1e-6)
+    # Before, 4095 / 65535 = 0.0625: the frames 16x too dark and nothing saturated.
+    stack, saturated = acq.load_stack([binary, text])
+    np.testing.assert_array_equal(saturated, np.stack([codes == 4095] * 2))
+
+
+def test_grey_png_with_alpha_reads_as_grey(tmp_path):
+    from PIL import Image
+
+    grey = np.arange(12, dtype=np.uint8).reshape(3, 4) * 20
+    Image.fromarray(np.dstack([grey, np.full_like(grey, 255)]), "LA").save(tmp_path / "la.png")
+    got = acq.read_image(tmp_path / "la.png", linearize="none")
+    # (3, 4, 3) colour before: OpenCV returns four channels for grey + alpha
+    np.testing.assert_allclose(got, grey / 255, rtol=1e-6)
+
+
 def test_8bit_srgb_png_decoded_tiff_and_pgm_linear(tmp_path):
     v = np.full((3, 3), 128, np.uint8)
     for name in ("g.png", "g.pgm", "g.tif"):

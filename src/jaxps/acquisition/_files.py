@@ -57,7 +57,9 @@ def read_image(path: PathLike, *, linearize: str = "auto") -> Float[np.ndarray, 
 
     Uses `cv2.imread(..., IMREAD_UNCHANGED)`, which keeps 16 bits (imageio and
     `skimage.io.imread` silently return 16-bit PNGs as 8-bit with Pillow 13). An alpha channel is
-    dropped; colour comes back in RGB order.
+    dropped; colour comes back in RGB order. Integer pixels are divided by the largest code of
+    their type (255 or 65535), or for PGM and PPM by the header's maxval: a 12-bit camera's
+    4095 reads as 1 (saturated), not 0.0625.
 
     **Arguments:**
     - `path`: the file.
@@ -70,9 +72,37 @@ def read_image(path: PathLike, *, linearize: str = "auto") -> Float[np.ndarray, 
     return _to_float(*_decode(path, linearize))
 
 
-def _decode(path: PathLike, linearize: str) -> tuple[np.ndarray, str, bool]:
-    """`(raw, path, srgb)`: the file's pixels as stored (RGB order, no alpha), and whether
-    `linearize` asks for them to be decoded from sRGB."""
+def _header(path: str) -> tuple[int | None, bool]:
+    """`(maxval, grey)` from a file's first bytes: the largest code value a binary or text
+    PGM/PPM header declares (e.g. 4095 for a 12-bit camera; OpenCV returns the codes as they
+    are), else None; and whether it is a PNG of grey pixels (with alpha OpenCV returns four
+    equal-coloured channels)."""
+    with open(path, "rb") as f:
+        head = f.read(512)
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) > 25:
+        return None, head[25] in (0, 4)  # IHDR colour type: grey, grey + alpha
+    return _netpbm_maxval(head), False
+
+
+def _netpbm_maxval(head: bytes) -> int | None:
+    """The maxval of a PGM/PPM header (magic, width, height, maxval; `#` comments), or None."""
+    if head[:2] not in (b"P2", b"P3", b"P5", b"P6"):
+        return None
+    fields = []
+    for line in head[2:].split(b"\n"):
+        fields += line.split(b"#")[0].split()
+        if len(fields) >= 3:
+            break
+    try:
+        return int(fields[2])
+    except (IndexError, ValueError):
+        return None  # OpenCV judges the header
+
+
+def _decode(path: PathLike, linearize: str) -> tuple[np.ndarray, str, bool, int | None]:
+    """`(raw, path, srgb, top)`: the file's pixels as stored (RGB order, no alpha), whether
+    `linearize` asks for them to be decoded from sRGB, and the code value that reads as 1
+    (a PGM's or PPM's maxval; None: the pixel type's largest)."""
     path = os.fspath(path)
     if linearize not in ("auto", "srgb", "none"):
         raise ValueError(f"linearize must be 'auto', 'srgb' or 'none', got {linearize!r}")
@@ -83,25 +113,27 @@ def _decode(path: PathLike, linearize: str) -> tuple[np.ndarray, str, bool]:
     raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if raw is None:
         raise ValueError(f"cannot read image {path}: not a decodable PGM/PNG/TIFF file")
+    top, grey = _header(path)
     if raw.ndim == 3:
-        raw = raw[..., :3][..., ::-1] if raw.shape[-1] >= 3 else raw[..., 0]
+        raw = raw[..., :3][..., ::-1] if raw.shape[-1] >= 3 and not grey else raw[..., 0]
     srgb = linearize == "srgb" or (
         linearize == "auto" and raw.dtype == np.uint8 and path.lower().endswith(_SRGB_EXTENSIONS)
     )
-    return raw, path, srgb
+    return raw, path, srgb, top
 
 
-def _to_float(raw: np.ndarray, path: str, srgb: bool, out: np.ndarray | None = None):
+def _to_float(raw: np.ndarray, path: str, srgb: bool, top: int | None = None,
+              out: np.ndarray | None = None):
     """`raw` as linear float32 in [0, 1], written into `out` when given (one pass per step,
-    no temporaries: `load_stack` fills its stack in place)."""
+    no temporaries: `load_stack` fills its stack in place). Integer codes are divided by
+    `top` (default: 255 or 65535 by pixel type)."""
     if raw.dtype not in (np.uint8, np.uint16, np.float32, np.float64):
         raise ValueError(f"image {path} has unsupported pixel type {raw.dtype}")
     if out is None:
         out = np.empty(raw.shape, np.float32)
-    if raw.dtype == np.uint8:
-        np.divide(raw, np.float32(255), out=out)
-    elif raw.dtype == np.uint16:
-        np.divide(raw, np.float32(65535), out=out)
+    if raw.dtype in (np.uint8, np.uint16):
+        full = 255 if raw.dtype == np.uint8 else 65535
+        np.divide(raw, np.float32(full if top is None else top), out=out)
     else:
         out[...] = raw
         if not np.isfinite(out).all():  # integer pixels are always finite
@@ -143,13 +175,13 @@ def load_stack(
     saturated = np.empty(stack.shape[:3], bool)
 
     def fill(i, decoded):
-        raw, path, srgb = decoded if decoded is not None else _decode(paths[i], linearize)
+        raw, path, srgb, top = decoded if decoded is not None else _decode(paths[i], linearize)
         if raw.shape != first[0].shape:
             raise ValueError(
                 f"frame {path} has shape {raw.shape}, but {first[1]} has {first[0].shape}: "
                 "all frames must be the same size and channels"
             )
-        frame = _to_float(raw, path, srgb, out=stack[i])
+        frame = _to_float(raw, path, srgb, top, out=stack[i])
         top = frame >= 1.0
         saturated[i] = top.any(axis=-1) if top.ndim == 3 else top
 
