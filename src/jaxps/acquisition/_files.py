@@ -182,8 +182,8 @@ def load_stack(
                 "all frames must be the same size and channels"
             )
         frame = _to_float(raw, path, srgb, top, out=stack[i])
-        top = frame >= 1.0
-        saturated[i] = top.any(axis=-1) if top.ndim == 3 else top
+        at_top = frame >= 1.0
+        saturated[i] = at_top.any(axis=-1) if at_top.ndim == 3 else at_top
 
     with ThreadPoolExecutor(min(len(paths), os.cpu_count() or 1)) as pool:
         jobs = [pool.submit(fill, i, first if i == 0 else None) for i in range(len(paths))]

@@ -320,8 +320,9 @@ def icp(
     if max_distance is not None and not max_distance > 0:
         raise ValueError(f"max_distance must be positive, got {max_distance}")
     for name, pts in (("source", src), ("target", tgt)):
-        sv = np.linalg.svd(pts - pts.mean(axis=0, dtype=np.float64), compute_uv=False)
-        if not sv[1] > 1e-6 * sv[0]:  # NaN transforms and scipy's "'x' must be finite" before
+        centred = pts - pts.mean(axis=0, dtype=np.float64)
+        spread = np.linalg.eigvalsh(centred.T @ centred)  # ascending
+        if not spread[1] > 1e-12 * spread[2]:  # NaN transforms, then scipy's "'x' must be finite"
             raise ValueError(f"{name} points lie on one line (or at one point): no rigid "
                              f"transform onto them is determined")
     dtype = src.dtype

@@ -90,13 +90,11 @@ def near_photometric_stereo(
             images.astype(jnp.float32), positions, mask=mask, height0=height0,
             pixel_size=pixel_size, centre=centre, mu=mu, method=method, max_steps=max_steps,
             tol=tol, **options)
-        def narrow(a):
-            return a.astype(images.dtype)
-
-        return out._replace(ps=out.ps._replace(**{f: narrow(getattr(out.ps, f)) for f in
-                                                  ("normals", "albedo", "residual")}),
-                            height=narrow(out.height), lights=narrow(out.lights),
-                            falloff=narrow(out.falloff))
+        dt = images.dtype
+        ps = out.ps._replace(normals=out.ps.normals.astype(dt), albedo=out.ps.albedo.astype(dt),
+                             residual=out.ps.residual.astype(dt))
+        return out._replace(ps=ps, height=out.height.astype(dt), lights=out.lights.astype(dt),
+                            falloff=out.falloff.astype(dt))
     k, h, w = images.shape[:3]
     positions = np.asarray(positions, np.float64)
     if positions.shape != (k, 3):
