@@ -44,7 +44,39 @@ def test_pgm_maxval_of_a_12_bit_camera_reads_as_one(tmp_path):
         np.testing.assert_allclose(acq.read_image(path), codes / 4095, rtol=1e-6)
     # Before, 4095 / 65535 = 0.0625: the frames 16x too dark and nothing saturated.
     stack, saturated = acq.load_stack([binary, text])
+    np.testing.assert_allclose(stack, np.stack([codes / 4095] * 2), rtol=1e-6)
     np.testing.assert_array_equal(saturated, np.stack([codes == 4095] * 2))
+
+
+def test_bits_reads_a_12_bit_camera_in_16_bit_pngs(tmp_path, caplog):
+    rng = np.random.default_rng(0)
+    codes = rng.integers(100, 3000, size=(3, 20, 16)).astype(np.uint16)
+    codes[:, :3, :4] = 4095  # a saturated highlight of a 12-bit camera
+    paths = []
+    for i, c in enumerate(codes):
+        paths.append(tmp_path / f"f{i}.png")
+        cv2.imwrite(str(paths[-1]), c)
+    cv2.imwrite(str(tmp_path / "ambient.png"), np.full((20, 16), 40, np.uint16))
+    with caplog.at_level("WARNING", logger="jaxps"):
+        stack, saturated = acq.load_stack(paths)  # read as 16-bit: 16x too dark, unsaturated
+    assert not saturated.any() and stack.max() == pytest.approx(4095 / 65535)
+    assert "top out at code 4095, the largest of a 12-bit camera" in caplog.text
+    assert "bits=12 (--bits 12)" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING", logger="jaxps"):
+        stack, saturated = acq.load_stack(paths, bits=12)
+    assert caplog.text == ""
+    np.testing.assert_allclose(stack, codes / 4095, rtol=1e-6)
+    np.testing.assert_array_equal(saturated, codes == 4095)
+    # load_capture reads the ambient frame at the same depth
+    cap = acq.load_capture(paths, lights=np.eye(3) + 0.5, ambient=tmp_path / "ambient.png",
+                           bits=12, intensities="none", register=False, check_quality=False)
+    np.testing.assert_allclose(cap.images, np.clip((codes - 40.0) / 4095, 0, None), atol=1e-6)
+    with pytest.raises(ValueError, match=r"codes up to 4095, above the 1023 of bits=10"):
+        acq.load_stack(paths, bits=10)
+    for bad in (0, 17, 12.0):
+        with pytest.raises(ValueError, match="bits must be an int from 1 to 16"):
+            acq.read_image(paths[0], bits=bad)
 
 
 def test_grey_png_with_alpha_reads_as_grey(tmp_path):

@@ -5,6 +5,7 @@ import os
 import subprocess
 import sys
 
+import cv2
 import numpy as np
 import pytest
 
@@ -285,6 +286,20 @@ def test_errors_are_reported_not_raised(tmp_path, capsys, data):
     empty.mkdir()
     assert main(["reconstruct", str(empty), "--yale-names", "--out", str(tmp_path / "o")]) == 2
     assert "no frame files" in capsys.readouterr().err
+
+
+def test_bits_reaches_the_frames_of_every_capture_reading_command(tmp_path, capsys):
+    # 12-bit codes (up to 4095) read at --bits 10 overflow it: the error shows the option got
+    # through to load_capture (and no solve runs).
+    frames = []
+    for i in range(3):
+        frames.append(str(tmp_path / f"f{i}.png"))
+        cv2.imwrite(frames[-1], np.full((24, 20), 4095, np.uint16))
+    (tmp_path / "lights.txt").write_text("0 0 1\n0.4 0 1\n0 0.4 1\n")
+    for command in ("reconstruct", "relight"):
+        assert main([command, *frames, "--lights", str(tmp_path / "lights.txt"), "--bits", "10",
+                     "--out", str(tmp_path / command)]) == 2
+        assert "above the 1023 of bits=10" in capsys.readouterr().err
 
 
 def test_parser_lists_the_methods_of_the_library():

@@ -94,6 +94,9 @@ ADDED = {
 # Not from an issue (relighting under near lamps): `fit_brdf`, `brdf_features`, `relight` and
 # `extrapolation_mask` take per-pixel lights `(K, H, W, 3)` as well (their `lights` annotation);
 # those four entries rewritten.
+# Not from an issue: `read_image`, `load_stack`, `load_capture` and `jaxps.cli.reconstruct`
+# gained `bits` (a camera's bit depth, for files that hold its codes unscaled); those four
+# entries rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

@@ -89,6 +89,7 @@ def load_capture(
     crop_face: bool = False,
     crop_multiple: int = 64,
     linearize: str = "auto",
+    bits: int | None = None,
     check_quality: bool = True,
     register: bool = True,
     intensity_mask: PathLike | np.ndarray | None = None,
@@ -119,7 +120,8 @@ def load_capture(
       that are multiples of `crop_multiple` pixels (`bucket_box`: captures then share compiled
       programs instead of compiling each stage again for every new box size; 1 keeps the
       detector's box).
-    - `linearize`: see `read_image`.
+    - `linearize`, `bits`: see `read_image` (`bits`: a camera's bit depth, for files that hold
+      its codes unscaled, e.g. 12-bit codes in 16-bit PNGs; frames and ambient alike).
     - `check_quality`: run `jaxps.check_frames` on the ambient-subtracted frames (inside
       `mask` when one is given) and drop the flagged ones (logged on logger `"jaxps"`, named
       in `Capture.dropped`; `ValueError` if fewer than 3 remain). On by default: one
@@ -177,7 +179,7 @@ def load_capture(
             raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
     names = tuple(os.path.basename(p) for p in paths)
     ratios = None if intensity_ratios is None else _ratios(intensity_ratios, len(paths))
-    images, saturated = load_stack(paths, linearize=linearize)  # names a missing frame
+    images, saturated = load_stack(paths, linearize=linearize, bits=bits)  # names a missing frame
     if len(paths) < 3:
         raise ValueError(f"frames: photometric stereo needs at least 3 frames, got {len(paths)} "
                          f"({', '.join(names)})")
@@ -201,7 +203,7 @@ def load_capture(
         raise ValueError(f"{len(paths)} frames but {len(light_array)} lights")
 
     if ambient is not None:
-        images = _minus_ambient_file(images, ambient, linearize=linearize)
+        images = _minus_ambient_file(images, ambient, linearize=linearize, bits=bits)
 
     if isinstance(mask, np.ndarray):
         if mask.shape != images.shape[1:3]:

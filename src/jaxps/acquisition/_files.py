@@ -1,12 +1,15 @@
 """Frames from files: PGM/PNG/TIFF, 8- or 16-bit, grey or colour, to linear float32 in [0, 1].
 
 Intensities follow DESIGN.md: 8-bit / 255, 16-bit / 65535, linear in radiance; gamma-encoded
-sources (8-bit PNG/JPEG by default) are decoded from sRGB. OpenCV is imported on the first
+sources (8-bit PNG/JPEG by default) are decoded from sRGB. Two refinements of the full scale: a
+PGM or PPM is divided by the maxval of its header, and `bits=` names a camera's bit depth
+for files that hold, say, 12-bit codes in 16-bit pixels. OpenCV is imported on the first
 read.
 """
 
 from __future__ import annotations
 
+import logging
 import os
 import re
 from collections.abc import Sequence
@@ -52,7 +55,8 @@ def list_frames(folder: PathLike) -> list[str]:
     return [os.path.join(folder, n) for n in sorted(names, key=_natural_key)]
 
 
-def read_image(path: PathLike, *, linearize: str = "auto") -> Float[np.ndarray, "H W *C"]:
+def read_image(path: PathLike, *, linearize: str = "auto",
+               bits: int | None = None) -> Float[np.ndarray, "H W *C"]:
     """Read one frame as float32 in [0, 1]: `(H, W)` grey or `(H, W, 3)` RGB.
 
     Uses `cv2.imread(..., IMREAD_UNCHANGED)`, which keeps 16 bits (imageio and
@@ -65,11 +69,14 @@ def read_image(path: PathLike, *, linearize: str = "auto") -> Float[np.ndarray, 
     - `path`: the file.
     - `linearize`: `"auto"` decodes 8-bit PNG/JPEG from sRGB and leaves PGM/TIFF and 16-bit
       files linear; `"srgb"` always decodes; `"none"` never does.
+    - `bits`: the camera's bit depth, for integer files that hold its codes unscaled (a 12-bit
+      camera's 0-4095 in 16-bit PNG or TIFF pixels): codes are divided by $2^{bits} - 1$.
+      Default: the pixel type's largest code, or a PGM's maxval.
 
     **Raises:** `FileNotFoundError` if the file is missing, `ValueError` naming the file if it
-    cannot be decoded or has an unsupported bit depth.
+    cannot be decoded, has an unsupported bit depth, or codes above `bits`.
     """
-    return _to_float(*_decode(path, linearize))
+    return _to_float(*_decode(path, linearize, bits))
 
 
 def _header(path: str) -> tuple[int | None, bool]:
@@ -99,13 +106,21 @@ def _netpbm_maxval(head: bytes) -> int | None:
         return None  # OpenCV judges the header
 
 
-def _decode(path: PathLike, linearize: str) -> tuple[np.ndarray, str, bool, int | None]:
+def _check_bits(bits):
+    if bits is not None and not (isinstance(bits, (int, np.integer)) and 1 <= bits <= 16):
+        raise ValueError(f"bits must be an int from 1 to 16 (the camera's bit depth), got "
+                         f"{bits!r}")
+
+
+def _decode(path: PathLike, linearize: str,
+            bits: int | None = None) -> tuple[np.ndarray, str, bool, int | None]:
     """`(raw, path, srgb, top)`: the file's pixels as stored (RGB order, no alpha), whether
     `linearize` asks for them to be decoded from sRGB, and the code value that reads as 1
-    (a PGM's or PPM's maxval; None: the pixel type's largest)."""
+    (`2**bits - 1`, else a PGM's or PPM's maxval; None: the pixel type's largest)."""
     path = os.fspath(path)
     if linearize not in ("auto", "srgb", "none"):
         raise ValueError(f"linearize must be 'auto', 'srgb' or 'none', got {linearize!r}")
+    _check_bits(bits)
     if not os.path.isfile(path):
         raise FileNotFoundError(f"frame not found: {path}")
     import cv2
@@ -119,6 +134,11 @@ def _decode(path: PathLike, linearize: str) -> tuple[np.ndarray, str, bool, int 
     srgb = linearize == "srgb" or (
         linearize == "auto" and raw.dtype == np.uint8 and path.lower().endswith(_SRGB_EXTENSIONS)
     )
+    if bits is not None and raw.dtype in (np.uint8, np.uint16):
+        top = 2**bits - 1
+        if raw.max(initial=0) > top:
+            raise ValueError(f"image {path} has codes up to {raw.max()}, above the "
+                             f"{top} of bits={bits}")
     return raw, path, srgb, top
 
 
@@ -155,7 +175,7 @@ def srgb_to_linear(v: np.ndarray) -> np.ndarray:
 
 
 def load_stack(
-    paths: Sequence[PathLike], *, linearize: str = "auto"
+    paths: Sequence[PathLike], *, linearize: str = "auto", bits: int | None = None
 ) -> tuple[Float[np.ndarray, "K H W *C"], Bool[np.ndarray, "K H W"]]:
     """Read frames into a `(K, H, W)` or `(K, H, W, C)` stack, with a saturation map.
 
@@ -163,19 +183,25 @@ def load_stack(
     `(K, H, W)` bool array of samples at the top code value (any channel). Frames are decoded
     on up to `os.cpu_count()` threads (OpenCV and numpy release the GIL): on this project's
     2-core machine, five 1 MP 16-bit PNGs took 0.048 s against 0.066 s for `read_image` one
-    after another (`benchmarks/bench_io.py`).
+    after another (`benchmarks/bench_io.py`). `linearize`, `bits`: see `read_image`. Without
+    `bits`, 16-bit frames whose largest code is that of a 10-, 12- or 14-bit camera (1023,
+    4095, 16383), held by several samples, are named in a warning on the `"jaxps"` logger:
+    read as 16-bit they are that much too dark, and none of them counts as saturated.
 
     **Raises:** `ValueError` naming the first file whose size or channels differ from the first
     frame's, or an empty list.
     """
     if len(paths) == 0:
         raise ValueError("no frames given")
-    first = _decode(paths[0], linearize)
+    _check_bits(bits)
+    first = _decode(paths[0], linearize, bits)
+    tops = [0] * len(paths)  # each 16-bit frame's largest code and how many samples hold it
     stack = aligned_empty((len(paths), *first[0].shape), np.float32)
     saturated = np.empty(stack.shape[:3], bool)
 
     def fill(i, decoded):
-        raw, path, srgb, top = decoded if decoded is not None else _decode(paths[i], linearize)
+        raw, path, srgb, top = (decoded if decoded is not None
+                                else _decode(paths[i], linearize, bits))
         if raw.shape != first[0].shape:
             raise ValueError(
                 f"frame {path} has shape {raw.shape}, but {first[1]} has {first[0].shape}: "
@@ -184,12 +210,38 @@ def load_stack(
         frame = _to_float(raw, path, srgb, top, out=stack[i])
         at_top = frame >= 1.0
         saturated[i] = at_top.any(axis=-1) if at_top.ndim == 3 else at_top
+        if raw.dtype == np.uint16 and top is None:
+            largest = int(raw.max(initial=0))
+            tops[i] = (largest, int(np.count_nonzero(raw == largest))
+                       if largest in _LOW_DEPTH_TOPS else 0)
 
     with ThreadPoolExecutor(min(len(paths), os.cpu_count() or 1)) as pool:
         jobs = [pool.submit(fill, i, first if i == 0 else None) for i in range(len(paths))]
         for job in jobs:  # in order: the first bad file is the one named
             job.result()
+    _warn_low_depth(tops, paths)
     return stack, saturated
+
+
+# A 10-, 12- or 14-bit camera's largest code; held by this many samples of one frame (its
+# saturated ones), it is no chance maximum of a dim 16-bit frame.
+_LOW_DEPTH_TOPS = {2**b - 1: b for b in (10, 12, 14)}
+_LOW_DEPTH_MIN_COUNT = 8
+
+
+def _warn_low_depth(tops, paths):
+    """The warning of `load_stack` (its docstring), from each 16-bit frame's `(largest code,
+    samples holding it)` (0 for the other frames)."""
+    code = max((t[0] for t in tops if t), default=None)
+    if code in _LOW_DEPTH_TOPS and any(t and t[0] == code and t[1] >= _LOW_DEPTH_MIN_COUNT
+                                       for t in tops):
+        bits = _LOW_DEPTH_TOPS[code]
+        logging.getLogger("jaxps").warning(
+            "the 16-bit frames (%s ...) top out at code %d, the largest of a %d-bit camera: "
+            "read as 16-bit they are %dx too dark and their saturated samples pass as "
+            "unsaturated. If the camera writes %d-bit codes unscaled, give bits=%d "
+            "(--bits %d).", os.path.basename(os.fspath(paths[0])), code, bits,
+            2 ** (16 - bits), bits, bits, bits)
 
 
 def read_mask(path: PathLike, shape: tuple[int, int] | None = None) -> Bool[np.ndarray, "H W"]:

@@ -64,6 +64,10 @@ def add_light_args(p, near=False) -> None:
                        help="with --light-positions: the size of a pixel at the subject, mm")
     p.add_argument("--ambient", help="ambient-only control frame to subtract; 'auto': the "
                    "file named *ambient* in each folder of frames (one per capture)")
+    p.add_argument("--bits", type=int, metavar="N",
+                   help="the camera's bit depth, for 16-bit PNG/TIFF files that hold its codes "
+                   "unscaled (e.g. 12: 4095 is full scale and saturated); PGM headers say it "
+                   "themselves")
 
 
 def reconstruct_parser(sub) -> None:

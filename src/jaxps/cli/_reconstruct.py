@@ -80,6 +80,7 @@ def reconstruct(
     intensity_ratios=None,
     light_positions=None,
     pixel_size: float | None = None,
+    bits: int | None = None,
 ) -> dict:
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
@@ -92,6 +93,7 @@ def reconstruct(
     `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
     the measured shifts and whether the frames were moved).
     `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`).
+    `bits`: the camera's bit depth, for files that hold its codes unscaled (`load_capture`).
     `light_positions`, `pixel_size`: near point lights, for a rig whose lamps are close
     enough that their directions and fall-off change over the face: `(K, 3)` positions (or a
     file of `x y z` lines) in millimetres in the camera frame, the origin at the frame's centre
@@ -115,7 +117,7 @@ def reconstruct(
                          intensities=intensities, crop_face=crop_face,
                          check_quality=check_quality, register=register,
                          intensity_mask=intensity_mask, intensity_normal=intensity_normal,
-                         intensity_ratios=intensity_ratios)
+                         intensity_ratios=intensity_ratios, bits=bits)
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
 
@@ -350,7 +352,7 @@ def run(args) -> int:
         obj=args.obj, points=args.points, register=args.register,
         intensity_mask=args.intensity_mask, intensity_normal=args.intensity_normal,
         intensity_ratios=args.intensity_ratios,
-        light_positions=args.light_positions, pixel_size=args.pixel_size,
+        light_positions=args.light_positions, pixel_size=args.pixel_size, bits=args.bits,
     )
     if summary["dropped_frames"]:
         print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))
@@ -473,7 +475,7 @@ def _run_many(args) -> int:
                         intensities=args.intensities, register=args.register,
                         intensity_mask=args.intensity_mask,
                         intensity_normal=args.intensity_normal,
-                        intensity_ratios=args.intensity_ratios)
+                        intensity_ratios=args.intensity_ratios, bits=args.bits)
     results, rows = reconstruct_many(args.frames, method=args.method,
                                      check_quality=args.check_quality,
                                      light_positions=args.light_positions,

@@ -65,12 +65,13 @@ def relight_capture(
     intensity_ratios=None,
     light_positions=None,
     pixel_size: float | None = None,
+    bits: int | None = None,
 ) -> dict:
     """Fit `method` to a capture and write relit PNGs, `relight.gif` and `relight.json` to `out`.
 
     **Arguments:**
-    - `frames`, `lights`, `yale_names`, `ambient`, `mask`: as for `jaxps.acquisition.load_capture`
-      (grey frames; colour frames are averaged to grey).
+    - `frames`, `lights`, `yale_names`, `ambient`, `mask`, `bits`: as for
+      `jaxps.acquisition.load_capture` (grey frames; colour frames are averaged to grey).
     - `crop_face`: crop the frames to the detected face first, as `jaxps reconstruct
       --crop-face` does (`"crop"` in the summary: top, left, height, width); the relit
       images are of the crop.
@@ -117,7 +118,8 @@ def relight_capture(
     cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask,
                        crop_face=crop_face, check_quality=check_quality, register=register,
                        intensities=intensities, intensity_mask=intensity_mask,
-                       intensity_normal=intensity_normal, intensity_ratios=intensity_ratios)
+                       intensity_normal=intensity_normal, intensity_ratios=intensity_ratios,
+                       bits=bits)
     if cap.lights is None:
         raise ValueError("no lights: give --lights FILE or --yale-names")
     if positions is not None:
@@ -200,7 +202,7 @@ def run(args) -> int:
         check_quality=args.check_quality, register=args.register,
         intensities=args.intensities, intensity_mask=args.intensity_mask,
         intensity_normal=args.intensity_normal, intensity_ratios=args.intensity_ratios,
-        light_positions=args.light_positions, pixel_size=args.pixel_size)
+        light_positions=args.light_positions, pixel_size=args.pixel_size, bits=args.bits)
     if s["dropped_frames"]:
         print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
     if "target" in s["intensities"]:
