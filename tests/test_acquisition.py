@@ -63,6 +63,12 @@ def test_bits_reads_a_12_bit_camera_in_16_bit_pngs(tmp_path, caplog):
     assert "top out at code 4095, the largest of a 12-bit camera" in caplog.text
     assert "bits=12 (--bits 12)" in caplog.text
     caplog.clear()
+    pgm = tmp_path / "f.pgm"  # a PGM whose header keeps the 16-bit maxval: the same warning
+    pgm.write_bytes(b"P5\n16 20\n65535\n" + codes[0].astype(">u2").tobytes())
+    with caplog.at_level("WARNING", logger="jaxps"):
+        acq.load_stack([pgm])
+    assert "top out at code 4095" in caplog.text
+    caplog.clear()
     with caplog.at_level("WARNING", logger="jaxps"):
         stack, saturated = acq.load_stack(paths, bits=12)
     assert caplog.text == ""

@@ -210,7 +210,7 @@ def load_stack(
         frame = _to_float(raw, path, srgb, top, out=stack[i])
         at_top = frame >= 1.0
         saturated[i] = at_top.any(axis=-1) if at_top.ndim == 3 else at_top
-        if raw.dtype == np.uint16 and top is None:
+        if raw.dtype == np.uint16 and top in (None, 65535):  # full scale not set by bits=
             largest = int(raw.max(initial=0))
             tops[i] = (largest, int(np.count_nonzero(raw == largest))
                        if largest in _LOW_DEPTH_TOPS else 0)
