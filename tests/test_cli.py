@@ -288,7 +288,7 @@ def test_errors_are_reported_not_raised(tmp_path, capsys, data):
     assert "no frame files" in capsys.readouterr().err
 
 
-def test_bits_reaches_the_frames_of_every_capture_reading_command(tmp_path, capsys):
+def test_bits_reaches_the_frames_of_every_frame_reading_command(tmp_path, capsys):
     # 12-bit codes (up to 4095) read at --bits 10 overflow it: the error shows the option got
     # through to load_capture (and no solve runs).
     frames = []
@@ -300,6 +300,10 @@ def test_bits_reaches_the_frames_of_every_capture_reading_command(tmp_path, caps
         assert main([command, *frames, "--lights", str(tmp_path / "lights.txt"), "--bits", "10",
                      "--out", str(tmp_path / command)]) == 2
         assert "above the 1023 of bits=10" in capsys.readouterr().err
+    cv2.imwrite(str(tmp_path / "sphere.png"), np.full((24, 20), 255, np.uint8))
+    assert main(["calibrate", *frames, "--mask", str(tmp_path / "sphere.png"), "--bits", "10",
+                 "--out", str(tmp_path / "calibrate")]) == 2
+    assert "above the 1023 of bits=10" in capsys.readouterr().err
 
 
 def test_parser_lists_the_methods_of_the_library():
