@@ -45,7 +45,14 @@ from ..core._kept import (
     spare_outputs,
 )
 from . import _robust
-from ._l2 import PSResult, branch_of, host_constants, l2_batch_flags, l2_batch_solve
+from ._l2 import (
+    PSResult,
+    branch_of,
+    host_constants,
+    l2_batch_flags,
+    l2_batch_solve,
+    working_dtype,
+)
 from ._photometric_stereo import (
     _BANDED_SOLVERS,
     PS_METHODS,
@@ -196,7 +203,7 @@ def _l2_one_image(images, lights, mask, sample_mask, shared_lights, shared_mask,
     in after its solve (docs/speed.md, "Many captures")."""
     n, h, w = images.shape[0], images.shape[2], images.shape[3]
     dtype = jax.dtypes.canonicalize_dtype(images.dtype)  # float64 is float32 without x64
-    solve_dtype = np.float32 if jnp.finfo(dtype).bits < 32 else dtype  # float16, bfloat16
+    solve_dtype = working_dtype(dtype)
     thresholds = tuple(jnp.asarray(t, solve_dtype) for t in _sample_thresholds(**options))
     lights = np.asarray(lights, np.float64)
     lights = lights / np.linalg.norm(lights, axis=-1, keepdims=True)

@@ -56,6 +56,19 @@ class PSResult(NamedTuple):
     info: dict | None = None
 
 
+def working_dtype(dtype):
+    """The dtype the solves compute in: float32 for narrower floats (float16, bfloat16, which
+    the packed complex planes do not take and whose range a near lamp's distance exceeds),
+    else `dtype` itself."""
+    return jnp.dtype(jnp.float32) if jnp.finfo(dtype).bits < 32 else dtype
+
+
+def _widened(images):
+    """`images` in `working_dtype` (a no-op for float32 and float64)."""
+    dtype = working_dtype(images.dtype)
+    return images if images.dtype == dtype else images.astype(dtype)
+
+
 def _any(xs):
     return functools.reduce(jnp.logical_or, xs)
 
@@ -604,8 +617,7 @@ def l2_needs_weights(images, mask, sample_mask, thresholds):
     C])`, `mask` `(H, W)` or None (every pixel), `sample_mask` `(K, H, W)` or None and
     `thresholds` (cast to the images' dtype here) as `ps_l2` takes them (the flags do
     not depend on the lights)."""
-    if jnp.finfo(images.dtype).bits < 32:  # float16, bfloat16
-        images = images.astype(jnp.float32)
+    images = _widened(images)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
     return _max_flags(_flags(images, mask, sample_mask, thresholds))
 
@@ -645,8 +657,7 @@ def branch_of(flags: int) -> str:
 def l2_batch_flags(images, mask, sample_mask, thresholds):
     """`l2_needs_weights` of each capture of a stack: `(N,)` int32. `images`, `mask`,
     `sample_mask` and `thresholds` as `l2_batch_solve` takes them."""
-    if jnp.finfo(images.dtype).bits < 32:  # float16, bfloat16
-        images = images.astype(jnp.float32)
+    images = _widened(images)
     thresholds = tuple(jnp.asarray(t, images.dtype) for t in thresholds)
     return _max_flags(_flags(images, mask, sample_mask, thresholds, flat=False, batched=True),
                       per_capture=True)
@@ -655,8 +666,7 @@ def l2_batch_flags(images, mask, sample_mask, thresholds):
 def _batch_solve(images, lights, mask, sample_mask, thresholds, shared, dtype):
     """The every-sample-used solve of a stack (`l2_batch_solve`), in one program; `lights`
     is unused (their constants are in `shared`), taken so that both solves share arguments."""
-    if jnp.finfo(images.dtype).bits < 32:  # float16, bfloat16
-        images = images.astype(jnp.float32)
+    images = _widened(images)
     res = _solve_all_used(images, mask, sample_mask, thresholds,
                           _cast_shared(shared, images.dtype), flat=False, batched=True)
     normal, albedo, status, n_used, residual = _stacked(res)
@@ -673,8 +683,7 @@ def _batch_planes(scratch, images, lights, mask, sample_mask, thresholds, branch
     last. `scratch`: `(planes, n_used)` of an earlier call of the same shapes, either None,
     donated: XLA writes the outputs into their buffers."""
     del scratch
-    if jnp.finfo(images.dtype).bits < 32:  # float16, bfloat16
-        images = images.astype(jnp.float32)
+    images = _widened(images)
     return _weighted_planes(images, lights.astype(images.dtype), mask, sample_mask, thresholds,
                             flat=False, all_finite=branch == "weighted_finite", batched=True,
                             packed=True)

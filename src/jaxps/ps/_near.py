@@ -20,7 +20,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 from ..core._status import Status
 from ..integration import integrate
 from ..lights._near import _centre, near_light_field, surface_points
-from ._l2 import PSResult
+from ._l2 import PSResult, working_dtype
 from ._photometric_stereo import _check_images, photometric_stereo
 
 __all__ = ["NearResult", "near_photometric_stereo"]
@@ -83,11 +83,11 @@ def near_photometric_stereo(
     in float32).
     """
     images = jnp.asarray(_check_images(images)[0])  # floating (K, H, W[, C]), else a ValueError
-    if jnp.finfo(images.dtype).bits < 32:
+    if working_dtype(images.dtype) != images.dtype:
         # A lamp a metre away is ~1e6 square millimetres off, past float16's range (the fall-off
         # was NaN): solve in float32, answer in the images' dtype.
         out = near_photometric_stereo(
-            images.astype(jnp.float32), positions, mask=mask, height0=height0,
+            images.astype(working_dtype(images.dtype)), positions, mask=mask, height0=height0,
             pixel_size=pixel_size, centre=centre, mu=mu, method=method, max_steps=max_steps,
             tol=tol, **options)
         dt = images.dtype

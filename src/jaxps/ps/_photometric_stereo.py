@@ -29,7 +29,7 @@ from ..core._kept import _SINGLE, KEEP_FROM_BYTES, keep, keep_bytes, result_spec
 from ..core._store import active as store_active
 from ..core._store import call as stored_call
 from ..lights._directions import validate_lights
-from ._l2 import PSResult, host_constants, l2_branch
+from ._l2 import PSResult, host_constants, l2_branch, working_dtype
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
 
@@ -389,7 +389,7 @@ def _run(images, lights, mask, sample_mask, thresholds, dynamic, *, method, stat
     no all-true mask at all: as an operand of its `switch` one was written on every call.
     """
     out_dtype = images.dtype
-    dtype = jnp.float32 if jnp.finfo(images.dtype).bits < 32 else images.dtype
+    dtype = working_dtype(images.dtype)
     grey = images.ndim == 3
     images = images.astype(dtype)
     # L2 takes grey stacks as they are: a channel axis added here is fused into each pass of

@@ -11,6 +11,8 @@ import os
 
 import numpy as np
 
+from ..core._host import positive_scalar
+
 __all__ = ["to_trimesh", "write_meshes", "write_ply"]
 
 
@@ -18,7 +20,7 @@ def _grid_mesh(height, mask, pixel_size):
     """Vertices `(V, 3)` (x right, y up, z = height), triangles `(F, 3)` and the `(V,)` rows and
     columns of the pixels they come from; each 2x2 block of valid pixels gives two triangles
     wound toward the viewer."""
-    if not (np.ndim(pixel_size) == 0 and np.isfinite(pixel_size) and pixel_size > 0):
+    if not positive_scalar(pixel_size):
         raise ValueError(f"pixel_size must be positive and finite, got {pixel_size}")
     h, w = height.shape
     index = np.full((h, w), -1, np.int64)
