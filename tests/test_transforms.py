@@ -107,3 +107,20 @@ def test_gradient_in_pixel_size_inside_jit(method):
     want = 2 * float(loss(p)) / 0.5
     assert float(jax.jit(jax.grad(loss))(p)) == pytest.approx(want, rel=1e-4)
     assert float(jax.grad(loss)(p)) == pytest.approx(want, rel=1e-4)
+
+
+def test_constant_arguments_inside_jit():
+    # A constant sigma, positions or pixel_size inside a caller's jit is a tracer of JAX's
+    # too: the first three raised on 73ea9ec.
+    calls = {
+        "oren_nayar": (lambda t: jaxps.oren_nayar(t, t, t, 0.2), ANGLES),
+        "near_light_field": (lambda z: jaxps.near_light_field(
+            np.asarray(POSITIONS), jaxps.surface_points(z)), HEIGHT),
+        "surface_points": (lambda z: jaxps.surface_points(z, pixel_size=jnp.float32(0.5)),
+                           HEIGHT),
+        "integrate": (lambda n: jaxps.integrate(n, pixel_size=jnp.float32(0.5)), NORMALS),
+        "normals_from_height": (lambda z: jaxps.normals_from_height(
+            z, pixel_size=jnp.float32(0.5)), HEIGHT),
+    }
+    for name, (f, x) in calls.items():
+        _assert_close(jax.jit(f)(x), f(x), name)
