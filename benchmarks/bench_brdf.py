@@ -492,7 +492,7 @@ def loop(subject="yaleB01", set_name="cross"):
         t = time.perf_counter()
         r = brdf_photometric_stereo(images[train], lights[train], mask=mask, method=method,
                                     iterations=2, key=jax.random.key(0), n_samples=30_000,
-                                    max_steps=10)
+                                    max_steps=10, progress=jaxps.report.progress_bar())
         out[f"loop_{method}"] = jaxps.evaluate.angular_stats(r.normals, ref.normals, mask=mask)
         out[f"loop_{method}"]["status"] = jaxps.status_counts(np.asarray(r.status)[mask])
         out[f"loop_{method}"]["seconds"] = time.perf_counter() - t

@@ -15,6 +15,7 @@ import time
 import jax
 import numpy as np
 
+from jaxps.report import progress_bar
 from jaxps.stability import SWEEPS, sweep
 
 OUT = pathlib.Path(__file__).resolve().parent / "results"
@@ -32,7 +33,7 @@ def main():
     results = {}
     for name in args.sweeps:
         t = time.perf_counter()
-        results[name] = sweep(name, h=args.h, key=jax.random.key(7))
+        results[name] = sweep(name, h=args.h, key=jax.random.key(7), progress=progress_bar())
         print(f"{name}: {time.perf_counter() - t:.1f} s", flush=True)
     # "Tolerant to errors in the light source vectors": normal error per degree of light error.
     le = results.get("light_error_deg")

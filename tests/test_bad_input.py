@@ -121,6 +121,8 @@ CASES = [
     ("check_frames: names", lambda: jaxps.check_frames(IMAGES, names=["a"]), "names"),
     ("check_frames: thresholds (before)", lambda: jaxps.check_frames(
         IMAGES, thresholds=jaxps.QualityThresholds(comb=-1.0)), "comb="),
+    ("drop_flagged: min_frames (before)", lambda: acq.drop_flagged(
+        IMAGES, LIGHTS, jaxps.check_frames(IMAGES), min_frames=0), "min_frames"),
     ("estimate_shifts: reference", lambda: jaxps.estimate_shifts(IMAGES, reference=9),
      "reference"),
     ("estimate_shifts: normalization", lambda: jaxps.estimate_shifts(

@@ -623,9 +623,10 @@ def test_cli_relight_default_is_wrap_ggx_and_beats_lambert_on_a_held_out_light(d
     assert err["default"] < err["lambertian"]
 
 
-def test_cli_relight_drops_combed_frame(data, tmp_path):
+def test_cli_relight_drops_combed_frame(data, tmp_path, capsys):
     """yaleB02's +25,0 frame is interlace-combed (every other band of rows dark);
-    `--check-quality` drops it and fits on the other four, and the report says so."""
+    `--check-quality` drops it and fits on the other four, and the report says so. The
+    command shows its stages on a bar and times each in the report."""
     import json
 
     from jaxps.cli import main
@@ -637,6 +638,9 @@ def test_cli_relight_drops_combed_frame(data, tmp_path):
     summary = json.loads((out / "relight.json").read_text())
     assert summary["dropped_frames"] == ["yaleB02_P00A+025E+00.pgm"]
     assert len(summary["frames"]) == 4
+    assert list(summary["timings_s"]) == ["load", "fit", "relight_and_write"]
+    err = capsys.readouterr().err
+    assert "load frames (1/3)" in err and "relight and write (3/3)" in err
 
 
 def test_jaxtyping_annotations_hold(scene, fitted):

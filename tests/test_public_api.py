@@ -37,8 +37,9 @@ ADDED = {
                           "bucket_box", "check_file", "check_frames", "drop_flagged",
                           "estimate_shifts", "load_psm", "register_frames", "shift_frames",
                           "target_ratios"],
-    # Issue 15: a reconstruction as a textured trimesh mesh.
-    "jaxps.report": ["to_trimesh"],
+    # Issue 15: a reconstruction as a textured trimesh mesh. Not from an issue: `progress_bar`,
+    # a bar on stderr over the stages of a long call (`progress=`).
+    "jaxps.report": ["progress_bar", "to_trimesh"],
     # Issue 18: the installed `jaxps` script's entry point (`main` with `gc.freeze`).
     "jaxps.cli": ["console"],
 }
@@ -97,6 +98,8 @@ ADDED = {
 # Not from an issue: `read_image`, `load_stack`, `load_capture` and `jaxps.cli.reconstruct`
 # gained `bits` (a camera's bit depth, for files that hold its codes unscaled); those four
 # entries rewritten.
+# Not from an issue: `brdf_photometric_stereo` and `stability.sweep` gained `progress` (a hook
+# told of their stages, such as `jaxps.report.progress_bar()`); those two entries rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

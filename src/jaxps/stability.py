@@ -17,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
+from .core._progress import ProgressHook, Stages
 from .core._random import as_key
 from .core._status import Status
 from .evaluate import angular_stats
@@ -283,6 +284,7 @@ def sweep(
     methods: tuple[str, ...] | None = None,
     h: int = 96,
     key: jax.Array | int | None = None,
+    progress: ProgressHook | None = None,
 ) -> dict:
     """Angular error of each method as one corruption grows (see `SWEEPS`).
 
@@ -294,6 +296,8 @@ def sweep(
     - `h`: image height of the `face_like` scene.
     - `key`: PRNG key or int seed for noise and light perturbations (default
       `jax.random.key(0)`).
+    - `progress`: a hook told of each solve (one per value and method) as it starts:
+      `jaxps.report.progress_bar()` draws a bar on stderr.
 
     **Returns:** a JSON-ready dict: `name`, `values`, per-value scene facts (`shadowed`,
     `saturated`, `specular` fractions of object samples) and, per method, lists of
@@ -309,27 +313,33 @@ def sweep(
     out = {"name": name, "values": list(values), "h": h, "scene": [],
            "methods": {m: {f: [] for f in ("median_deg", "mean_deg", "p95_deg", "ok_fraction",
                                            "nonfinite")} for m in names}}
-    for i, value in enumerate(values):
-        scene, solver_lights, extra = _scene_for(name, value, h, jax.random.fold_in(key, i))
-        m = np.asarray(scene.mask)
-        out["scene"].append({
-            "shadowed": float(np.asarray(scene.shadow)[:, m].mean()),
-            "saturated": float((np.asarray(scene.images)[:, m] >= 1).mean()),
-            "specular": float((np.asarray(scene.specular)[:, m] > 0.02).mean()),
-        })
-        for meth in names:
-            if meth == "near-l2":
-                res = near_photometric_stereo(scene.images, extra["positions"], mask=m,
-                                              height0=extra["level"],
-                                              pixel_size=extra["pixel"], max_steps=8).ps
-            else:
-                res = photometric_stereo(scene.images, solver_lights, mask=m, method=meth)
-            st = angular_stats(res.normals, scene.normals, mask=m)
-            rec = out["methods"][meth]
-            for f in ("median_deg", "mean_deg", "p95_deg"):
-                rec[f].append(st[f])
-            rec["ok_fraction"].append(float((np.asarray(res.status)[m] == Status.OK).mean()))
-            rec["nonfinite"].append(int(sum(
-                (~np.isfinite(np.asarray(a))).sum() for a in (res.normals, res.albedo,
-                                                              res.residual))))
+    with Stages(len(values) * len(names), progress) as stages:
+        for i, value in enumerate(values):
+            scene, solver_lights, extra = _scene_for(name, value, h, jax.random.fold_in(key, i))
+            m = np.asarray(scene.mask)
+            out["scene"].append({
+                "shadowed": float(np.asarray(scene.shadow)[:, m].mean()),
+                "saturated": float((np.asarray(scene.images)[:, m] >= 1).mean()),
+                "specular": float((np.asarray(scene.specular)[:, m] > 0.02).mean()),
+            })
+            for meth in names:
+                if meth == "near-l2":
+                    res = stages.run(f"{name}={value:g}: {meth}", near_photometric_stereo,
+                                     scene.images, extra["positions"], mask=m,
+                                     height0=extra["level"], pixel_size=extra["pixel"],
+                                     max_steps=8).ps
+                else:
+                    res = stages.run(f"{name}={value:g}: {meth}", photometric_stereo,
+                                     scene.images, solver_lights, mask=m, method=meth)
+                _record(out["methods"][meth], res, scene.normals, m)
     return out
+
+
+def _record(rec, res, truth, mask):
+    """Append `res`'s error against `truth` over `mask` to `sweep`'s lists for one method."""
+    st = angular_stats(res.normals, truth, mask=mask)
+    for f in ("median_deg", "mean_deg", "p95_deg"):
+        rec[f].append(st[f])
+    rec["ok_fraction"].append(float((np.asarray(res.status)[mask] == Status.OK).mean()))
+    rec["nonfinite"].append(int(sum((~np.isfinite(np.asarray(a))).sum()
+                                    for a in (res.normals, res.albedo, res.residual))))

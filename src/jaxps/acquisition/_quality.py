@@ -324,8 +324,11 @@ def drop_flagged(
     **Returns:** `(frames, lights, kept)` with `kept` the `(K',)` indices of the kept frames.
 
     **Raises:** `ValueError` listing every flagged frame and why when fewer than `min_frames`
-    remain (e.g. every frame flagged), or when `report` does not match `frames`.
+    remain (e.g. every frame flagged), or when `report` does not match `frames` or
+    `min_frames` is not a positive int.
     """
+    if not (isinstance(min_frames, (int, np.integer)) and min_frames >= 1):
+        raise ValueError(f"min_frames must be an int >= 1 (frames to keep), got {min_frames!r}")
     frames = jnp.asarray(frames)
     lights_arr = jnp.asarray(lights)
     k = frames.shape[0]

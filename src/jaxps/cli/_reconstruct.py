@@ -7,8 +7,6 @@ folders, `reconstruct_many` solves each as a capture (one progress bar, a summar
 from __future__ import annotations
 
 import os
-import sys
-import time
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -17,11 +15,13 @@ import numpy as np
 from ..acquisition import check_frames, drop_flagged, list_frames, load_capture
 from ..acquisition._capture import _kept
 from ..core import Status, status_counts
+from ..core._progress import Stages
 from ..integration import integrate
 from ..lights import near_light_field, surface_points
 from ..lights._directions import _read_xyz
 from ..ps import PS_METHODS, PSResult, near_photometric_stereo, photometric_stereo
 from ..report._mesh import write_meshes
+from ..report._progress import progress_bar
 from ..report._writers import (
     write_albedo,
     write_csv,
@@ -31,30 +31,6 @@ from ..report._writers import (
 )
 
 __all__ = ["reconstruct", "reconstruct_many", "run", "summary_table"]
-
-
-class _Stages:
-    """A progress bar over named stages, with wall-clock time per stage."""
-
-    def __init__(self, names: list[str]):
-        from tqdm import tqdm
-
-        # The description names the stage now running and its place ("integrate (3/4)"); the
-        # bar fills with the stages finished.
-        self.bar = tqdm(total=len(names), unit="stage", file=sys.stderr, leave=False,
-                        bar_format="{desc:<32}{bar:20}| [{elapsed}]")
-        self.times: dict[str, float] = {}
-
-    def run(self, name: str, fn, *args, **kwargs):
-        self.bar.set_description_str(f"{name} ({self.bar.n + 1}/{self.bar.total})")
-        t0 = time.perf_counter()
-        out = fn(*args, **kwargs)
-        self.times[name] = round(time.perf_counter() - t0, 4)
-        self.bar.update()
-        return out
-
-    def close(self):
-        self.bar.close()
 
 
 def reconstruct(
@@ -102,15 +78,13 @@ def reconstruct(
     the intensity estimate, registration and quality checks take the lamps' directions from
     the origin. `lights` is then not given. With `crop_face` the positions stay measured from
     the frame's centre: the crop is solved with that centre (`"centre_px"` in the summary)."""
-    import jax
-
     if len(frames) == 1 and os.path.isdir(frames[0]):
         frames = frames[0]
     positions = None
     if light_positions is not None or pixel_size is not None:
         positions = _positions(light_positions, pixel_size, lights, yale_names, intensities)
         lights = positions / np.linalg.norm(positions, axis=1, keepdims=True)
-    stages = _Stages(["load", "solve", "integrate", "write"])
+    stages = Stages(4, progress_bar())
     try:
         cap = stages.run("load frames", load_capture, frames, lights=lights,
                          yale_names=yale_names, ambient=ambient, mask=mask,
@@ -133,11 +107,10 @@ def reconstruct(
                     cap.images, near_positions, mask=cap.mask, pixel_size=pixel_size,
                     centre=centre, method=method, sample_mask=~cap.saturated,
                     shadow_threshold=shadow_threshold)
-                return jax.block_until_ready(near.ps)
-            res = photometric_stereo(cap.images, cap.lights, mask=cap.mask, method=method,
-                                     sample_mask=~cap.saturated,
-                                     shadow_threshold=shadow_threshold)
-            return jax.block_until_ready(res)
+                return near.ps
+            return photometric_stereo(cap.images, cap.lights, mask=cap.mask, method=method,
+                                      sample_mask=~cap.saturated,
+                                      shadow_threshold=shadow_threshold)
 
         res = stages.run("photometric stereo", solve)
         ok = np.asarray(res.status) == 0

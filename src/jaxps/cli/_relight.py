@@ -8,14 +8,15 @@ from __future__ import annotations
 
 import json
 import os
-import time
 
 import numpy as np
 
 from ..acquisition import load_capture
+from ..core._progress import Stages
 from ..lights import lights_from_angles
 from ..ps import near_photometric_stereo, photometric_stereo
 from ..reflectance import fit_brdf, relight
+from ..report._progress import progress_bar
 from ..report._writers import write_json
 from ._reconstruct import (
     _card_line,
@@ -113,59 +114,70 @@ def relight_capture(
     if light_positions is not None or pixel_size is not None:
         positions = _positions(light_positions, pixel_size, lights, yale_names, intensities)
         lights = positions / np.linalg.norm(positions, axis=1, keepdims=True)
-    times = {}
-    t = time.perf_counter()
-    cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient, mask=mask,
-                       crop_face=crop_face, check_quality=check_quality, register=register,
-                       intensities=intensities, intensity_mask=intensity_mask,
-                       intensity_normal=intensity_normal, intensity_ratios=intensity_ratios,
-                       bits=bits)
-    if cap.lights is None:
-        raise ValueError("no lights: give --lights FILE or --yale-names")
-    if positions is not None:
-        positions, centre, cap = _near_capture(frames, cap, positions, pixel_size,
-                                               intensity_mask)
-    images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
-    times["load"] = time.perf_counter() - t
+    stages = Stages(3, progress_bar())
+    try:
+        def load():
+            cap = load_capture(frames, lights=lights, yale_names=yale_names, ambient=ambient,
+                               mask=mask, crop_face=crop_face, check_quality=check_quality,
+                               register=register, intensities=intensities,
+                               intensity_mask=intensity_mask, intensity_normal=intensity_normal,
+                               intensity_ratios=intensity_ratios, bits=bits)
+            if cap.lights is None:
+                raise ValueError("no lights: give --lights FILE or --yale-names")
+            near_args = None
+            if positions is not None:
+                near_args = _near_capture(frames, cap, positions, pixel_size, intensity_mask)
+                cap = near_args[2]
+            return cap, near_args
 
-    t = time.perf_counter()
-    near = None
-    if positions is None:
-        ps = photometric_stereo(images, cap.lights, mask=cap.mask, sample_mask=~cap.saturated)
-        fit_images, fit_lights = images, cap.lights
-    else:
-        near = near_photometric_stereo(images, positions, mask=cap.mask, pixel_size=pixel_size,
-                                       centre=centre, sample_mask=~cap.saturated)
-        ps = near.ps
-        # each sample as a unit-strength lamp at the pixel's own direction would give it; a
-        # saturated one is left out (NaN) rather than brought below the saturation level
-        fit_images = np.where(cap.saturated, np.nan, images / np.asarray(near.falloff))
-        fit_lights = near.lights
-    fit_mask = cap.mask & (np.asarray(ps.status) == 0)
-    model = fit_brdf(fit_images, ps.normals, ps.albedo, fit_lights, mask=fit_mask,
-                     method=method, key=jax.random.key(seed), n_samples=n_samples,
-                     max_steps=max_steps)
-    times["fit"] = time.perf_counter() - t
+        cap, near_args = stages.run("load frames", load, time_key="load")
+        images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
 
-    os.makedirs(out, exist_ok=True)
-    scale = float(np.percentile(images[:, fit_mask], 99.5)) or 1.0
-    files = []
-    t = time.perf_counter()
-    if new_lights:
-        az, el = zip(*new_lights)
-        relit = np.asarray(relight(model, ps.normals, ps.albedo, lights_from_angles(az, el),
-                                   mask=fit_mask))
-        for (a, e), img in zip(new_lights, relit):
-            name = f"relit_A{a:+04.0f}E{e:+03.0f}.png"
-            Image.fromarray(_to_8bit(img, scale)).save(os.path.join(out, name))
-            files.append(name)
-    circle = circle_lights(circle_frames, circle_zenith_deg)
-    anim = np.asarray(relight(model, ps.normals, ps.albedo, circle, mask=fit_mask))
-    frames_8 = [Image.fromarray(_to_8bit(img, scale)) for img in anim]
-    frames_8[0].save(os.path.join(out, "relight.gif"), save_all=True,
-                     append_images=frames_8[1:], duration=80, loop=0)
-    files.append("relight.gif")
-    times["relight_and_write"] = time.perf_counter() - t
+        def fit():
+            if near_args is None:
+                ps = photometric_stereo(images, cap.lights, mask=cap.mask,
+                                        sample_mask=~cap.saturated)
+                near, fit_images, fit_lights = None, images, cap.lights
+            else:
+                near = near_photometric_stereo(images, near_args[0], mask=cap.mask,
+                                               pixel_size=pixel_size, centre=near_args[1],
+                                               sample_mask=~cap.saturated)
+                ps = near.ps
+                # each sample as a unit-strength lamp at the pixel's own direction would give
+                # it; a saturated one is left out (NaN) rather than brought below the
+                # saturation level
+                fit_images = np.where(cap.saturated, np.nan, images / np.asarray(near.falloff))
+                fit_lights = near.lights
+            fit_mask = cap.mask & (np.asarray(ps.status) == 0)
+            model = fit_brdf(fit_images, ps.normals, ps.albedo, fit_lights, mask=fit_mask,
+                             method=method, key=jax.random.key(seed), n_samples=n_samples,
+                             max_steps=max_steps)
+            return ps, near, fit_mask, model
+
+        ps, near, fit_mask, model = stages.run(f"fit {method}", fit, time_key="fit")
+        os.makedirs(out, exist_ok=True)
+        scale = float(np.percentile(images[:, fit_mask], 99.5)) or 1.0
+
+        def render():
+            files = []
+            if new_lights:
+                az, el = zip(*new_lights)
+                relit = np.asarray(relight(model, ps.normals, ps.albedo,
+                                           lights_from_angles(az, el), mask=fit_mask))
+                for (a, e), img in zip(new_lights, relit):
+                    name = f"relit_A{a:+04.0f}E{e:+03.0f}.png"
+                    Image.fromarray(_to_8bit(img, scale)).save(os.path.join(out, name))
+                    files.append(name)
+            circle = circle_lights(circle_frames, circle_zenith_deg)
+            anim = np.asarray(relight(model, ps.normals, ps.albedo, circle, mask=fit_mask))
+            frames_8 = [Image.fromarray(_to_8bit(img, scale)) for img in anim]
+            frames_8[0].save(os.path.join(out, "relight.gif"), save_all=True,
+                             append_images=frames_8[1:], duration=80, loop=0)
+            return [*files, "relight.gif"]
+
+        files = stages.run("relight and write", render, time_key="relight_and_write")
+    finally:
+        stages.close()
 
     fit = model.fit._asdict()
     summary = {
@@ -177,11 +189,11 @@ def relight_capture(
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
         "mask_pixels": int(fit_mask.sum()), "png_scale": scale,
         "circle_zenith_deg": circle_zenith_deg, "files": files,
-        "timings_s": {k: round(v, 3) for k, v in times.items()},
+        "timings_s": {k: round(v, 3) for k, v in stages.times.items()},
         "note": "timings include JIT compilation",
     }
     if near is not None:
-        summary["near_lights"] = _near_summary(near, positions, pixel_size, centre)
+        summary["near_lights"] = _near_summary(near, near_args[0], pixel_size, near_args[1])
     write_json(os.path.join(out, "relight.json"), json.loads(json.dumps(summary)))
     return summary
 

@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
 from ..core._batched_lm import BatchedLM, map_pixels, solve_pixels
+from ..core._progress import ProgressHook, Stages
 from ..core._random import as_key
 from ..core._status import Status
 from ..ps import PSResult, photometric_stereo
@@ -78,6 +79,7 @@ def brdf_photometric_stereo(
     iterations: int = 2,
     key: jax.Array | int | None = None,
     max_steps: int = 20,
+    progress: ProgressHook | None = None,
     **fit_options,
 ) -> PSResult:
     """Photometric stereo with the BRDF fitted to the same images, iterated.
@@ -94,9 +96,13 @@ def brdf_photometric_stereo(
     - `iterations`: BRDF fit + per-pixel re-solve rounds (0 returns L2 photometric stereo).
     - `key` (a JAX PRNG key or an int seed), `**fit_options`: passed to `fit_brdf`.
     - `max_steps`: per-pixel LM step limit.
+    - `progress`: a hook told of each stage as it starts (the L2 solve, then each round's fit
+      and re-solve): `jaxps.report.progress_bar()` draws a bar on stderr. `info["times_s"]`
+      has the stages' times either way (a first call's include compiling).
 
     **Returns:** a `PSResult`; `status` is `NOT_CONVERGED` where a pixel's last solve hit its
-    step limit, and `info` holds `{"models": [...], "iterations": iterations}`.
+    step limit, and `info` holds `{"models": [...], "iterations": iterations, "times_s":
+    {stage: seconds}}` (the stages "l2", "fit 1", "solve 1", "fit 2", ...).
     """
     if method not in BRDF_METHODS or method == "delaunay":
         raise ValueError(f"method must be one of {BRDF_METHODS} except 'delaunay', got {method!r}")
@@ -104,7 +110,15 @@ def brdf_photometric_stereo(
         raise ValueError(f"iterations must be >= 0, got {iterations}")
     key = as_key(key)
     images = jnp.asarray(images)
-    res = photometric_stereo(images, lights, mask=mask)
+    with Stages(1 + 2 * iterations, progress) as stages:
+        res = stages.run("L2 photometric stereo", photometric_stereo, images, lights, mask=mask,
+                         time_key="l2")
+        return _iterate(images, lights, res, stages, method=method, iterations=iterations,
+                        key=key, max_steps=max_steps, fit_options=fit_options)
+
+
+def _iterate(images, lights, res, stages, *, method, iterations, key, max_steps, fit_options):
+    """`brdf_photometric_stereo`'s rounds after the L2 solve `res`, each stage on `stages`."""
     h, w = images.shape[1:]
     ok = np.asarray(res.status) == Status.OK
     if not ok.any():
@@ -114,16 +128,18 @@ def brdf_photometric_stereo(
     xy = pixel_coordinates(h, w, images.dtype)
     normals, albedo, status, residual = res.normals, res.albedo, res.status, res.residual
     models = []
-    for _ in range(iterations):
-        model = fit_brdf(images, normals, albedo, lights_j, mask=ok, method=method, key=key,
-                         **fit_options)
+    for i in range(1, iterations + 1):
+        model = stages.run(f"fit {method} ({i}/{iterations})", fit_brdf, images, normals, albedo,
+                           lights_j, mask=ok, method=method, key=key, time_key=f"fit {i}",
+                           **fit_options)
         models.append(model)
         # the fit explains frame k as g_k times the model, so re-solve against I_k / g_k
         frames = images
         if model.fit.frame_gains is not None:
             frames = images / jnp.asarray(model.fit.frame_gains, images.dtype)[:, None, None]
-        n, rho, conv, rms = _solve_pixels(model, frames, lights_j, normals, albedo, xy,
-                                          max_steps)
+        n, rho, conv, rms = stages.run(f"re-solve pixels ({i}/{iterations})", _solve_pixels,
+                                       model, frames, lights_j, normals, albedo, xy, max_steps,
+                                       time_key=f"solve {i}")
         good = jnp.asarray(ok).reshape(-1) & jnp.all(jnp.isfinite(n), axis=-1) & (rho > 0)
         normals = jnp.where(good[:, None], n, normals.reshape(-1, 3)).reshape(h, w, 3)
         albedo = jnp.where(good, rho, albedo.reshape(-1)).reshape(h, w)
@@ -132,4 +148,4 @@ def brdf_photometric_stereo(
                            res.status).astype(jnp.int32)
     return PSResult(normals.astype(images.dtype), albedo.astype(images.dtype), status,
                     res.n_used, residual.astype(images.dtype),
-                    {"models": models, "iterations": iterations})
+                    {"models": models, "iterations": iterations, "times_s": stages.times})
