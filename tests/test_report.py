@@ -190,13 +190,18 @@ def test_write_json_has_no_negative_zero(tmp_path):
 
 
 def test_progress_bar_names_the_running_stage():
-    from jaxps.cli._reconstruct import _Stages
+    """The commands' bar (`Stages` told to `report.progress_bar`): while a stage runs, the
+    bar's line names it with its place."""
+    import io
 
-    stages = _Stages(["a", "b", "c"])
-    seen = []
-    for name in ("load frames", "integrate", "write outputs"):
-        stages.run(name, lambda: seen.append((stages.bar.desc, stages.bar.n)))
-    stages.close()
-    # while a stage runs, the bar names it with its place; `n` counts the finished ones
-    assert seen == [("load frames (1/3)", 0), ("integrate (2/3)", 1), ("write outputs (3/3)", 2)]
+    from jaxps.core._progress import Stages
+    from jaxps.report import progress_bar
+
+    out = io.StringIO()
+    with Stages(3, progress_bar(out)) as stages:
+        seen = []
+        for name in ("load frames", "integrate", "write outputs"):
+            stages.run(name, lambda: seen.append(out.getvalue().rsplit("\r", 1)[-1]))
+    for line, name in zip(seen, ("load frames (1/3)", "integrate (2/3)", "write outputs (3/3)")):
+        assert line.startswith(name), line
     assert list(stages.times) == ["load frames", "integrate", "write outputs"]
