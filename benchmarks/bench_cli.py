@@ -27,7 +27,11 @@ compilation cache off, once with the detector's boxes (`crop_multiple=1`: one co
 box size) and once with boxes grown to multiples of 64 (the default): seconds per capture.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_cli.py [--quick]
-    -> benchmarks/results/cli.json, cli.png
+        [--integration METHOD] [--out NAME]
+    -> benchmarks/results/cli.json, cli.png (NAME.json, NAME.png)
+
+`--integration` passes that method to every `jaxps reconstruct` run (default: the command's
+own default).
 """
 
 from __future__ import annotations
@@ -65,15 +69,17 @@ def _wall(argv, env) -> float:
     return time.perf_counter() - t0
 
 
-def main():
+def main(integration=None, out_name="cli"):
     env = dict(os.environ)
+    extra = [] if integration is None else ["--integration", integration]
     # Python's bytecode cache on, as on a user's machine (pip compiles an installed package's
     # modules; an editable install writes them on first import). This project's machines set
     # PYTHONDONTWRITEBYTECODE=1, and every run then compiled jaxps's modules from source.
     bytecode_off = env.pop("PYTHONDONTWRITEBYTECODE", None)
     jaxps = _command()
     res = {"command": " ".join(pathlib.Path(a).name for a in jaxps), "quick": QUICK,
-           "env": environment(), "start_up_s": {}, "reconstruct": {}}
+           "env": environment(), "integration": integration or "the command's default",
+           "start_up_s": {}, "reconstruct": {}}
     res["env"]["OPENBLAS_NUM_THREADS"] = env.get("OPENBLAS_NUM_THREADS")
     res["env"]["PYTHONDONTWRITEBYTECODE"] = (f"{bytecode_off} in the calling shell, unset for the "
                                              "timed commands" if bytecode_off else None)
@@ -102,7 +108,7 @@ def main():
                 argv = [*jaxps, "reconstruct", *sorted(str(p) for p in frames.glob("frame_*.png")),
                         "--lights", str(frames / "lights.txt"),
                         "--ambient", str(frames / "ambient.png"),
-                        "--mask", str(frames / "mask.png"), "--out", str(out)]
+                        "--mask", str(frames / "mask.png"), "--out", str(out), *extra]
                 wall = _wall(argv, {**env, "JAXPS_CACHE_DIR": str(cache)})
                 stages = json.loads((out / "summary.json").read_text())["timings_s"]
                 runs[run] = {"wall_s": wall, "stages_s": stages,
@@ -122,9 +128,9 @@ def main():
                     run: {"wall_s": _wall(relight, relight_env)}
                     for run in ("first (empty cache)", "second (warm cache)")},
                     "programs_per_run": _programs(relight, relight_env)}
-        res["yaleb"] = _yaleb(jaxps, env, tmp)
+        res["yaleb"] = _yaleb(jaxps, env, tmp, extra)
     res["shape_buckets"] = _buckets(env)
-    path = write_json("cli", res)
+    path = write_json(out_name, res)
     _chart(res, path.with_suffix(".png"))
     for name, runs in res["reconstruct"].items():
         for run, r in runs.items():
@@ -180,7 +186,7 @@ def _programs(argv, env) -> int:
     return sum("Compiling " in line for line in proc.stderr.splitlines())
 
 
-def _yaleb(jaxps, env, tmp):
+def _yaleb(jaxps, env, tmp, extra=()):
     """`jaxps reconstruct` on a real face, the issue-17 command line (yaleB01's five cross
     frames, `--yale-names --ambient`): its frames moved, so the run registers them. Cold, then
     warm."""
@@ -189,7 +195,7 @@ def _yaleb(jaxps, env, tmp):
         return {"skipped": f"no Yale B data at {folder}"}
     out = tmp / "out_yaleb"
     argv = ["reconstruct", *[str(folder / f"yaleB01_P00{n}.pgm") for n in NAMES], "--yale-names",
-            "--ambient", str(folder / "yaleB01_P00_Ambient.pgm"), "--out", str(out)]
+            "--ambient", str(folder / "yaleB01_P00_Ambient.pgm"), "--out", str(out), *extra]
     run_env = {**env, "JAXPS_CACHE_DIR": str(tmp / "cache_yaleb")}
     res = {"frames": 5, "rows": 192, "columns": 168}
     for run in ("first (empty cache)", "second (warm cache)"):
@@ -266,9 +272,14 @@ def _chart(res, path):
 
 
 if __name__ == "__main__":
-    args = arguments(__doc__, quick=True, configure=lambda p: p.add_argument(
-        "--buckets-child", type=int, metavar="MULTIPLE", help="internal: one bucketing run"))
+    def configure(p):
+        p.add_argument("--buckets-child", type=int, metavar="MULTIPLE",
+                       help="internal: one bucketing run")
+        p.add_argument("--integration", help="passed to every `jaxps reconstruct` run")
+        p.add_argument("--out", default="cli", help="results name (default cli)")
+
+    args = arguments(__doc__, quick=True, configure=configure)
     if args.buckets_child is not None:
         _buckets_child(args.buckets_child)
     else:
-        main()
+        main(args.integration, args.out)

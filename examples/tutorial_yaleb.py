@@ -42,7 +42,7 @@ print(np.round(capture.lights, 3))  # (5, 3) unit vectors, x right, y up, z to t
 result = jaxps.photometric_stereo(capture.images, capture.lights, shadow_threshold=0.01)
 face = (np.asarray(result.status) == 0) & (np.asarray(result.albedo) > 0.02)
 print("pixels:", jaxps.status_counts(result.status))
-height = np.asarray(jaxps.integrate(result.normals, mask=face))
+height = np.asarray(jaxps.integrate(result.normals, mask=face, method="lsq"))
 # --8<-- [end:solve]
 
 # --8<-- [start:relight]

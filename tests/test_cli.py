@@ -75,7 +75,29 @@ def test_demo_with_every_default(tmp_path, capsys):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert summary["dropped_frames"] == []
     assert summary["errors_vs_truth"]["angular_median_deg"] < 2.0  # 0.96 with its 0.5% noise
+    assert summary["integration"] == "lsq"
     assert "median angular error" in capsys.readouterr().out
+
+
+def test_demo_height_lsq_beats_fc():
+    """The command's default integrator against the seeds' on the demo's synthetic face (known
+    height, not shared data): the height RMS error of `lsq` is well below `fc`'s, which treats
+    the image as periodic (measured 0.022 against 0.039 px at 96 rows)."""
+    import jax
+
+    surface = jaxps.synthetic.face_like(96)
+    lights = jaxps.synthetic.scanner_lights(20.0)
+    scene = jaxps.synthetic.render_scene(surface, lights, noise=0.005, key=jax.random.key(0))
+    mask = np.asarray(scene.mask)
+    res = jaxps.photometric_stereo(scene.images, lights, mask=mask)
+    ok = np.asarray(res.status) == 0
+    rms = {}
+    for method in ("fc", "lsq"):
+        dz = (np.asarray(jaxps.integrate(res.normals, mask=ok, method=method))
+              - np.asarray(scene.height))[mask]
+        rms[method] = float(np.sqrt(np.mean((dz - dz.mean()) ** 2)))
+    print(rms)  # pytest -s shows the figures
+    assert rms["lsq"] < 0.7 * rms["fc"], rms
 
 
 def test_semi_calibrated_intensities_report_their_fit(tmp_path, data, caplog, monkeypatch):

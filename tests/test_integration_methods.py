@@ -119,6 +119,24 @@ def test_multigrid_and_jacobi_cg_agree_with_holes_and_two_components(face):
     assert out["multigrid"].converged and out["jacobi"].converged
 
 
+def test_lsq_in_two_stored_programs_equals_the_general_path(face):
+    """`integrate(method="lsq")` without info runs as two programs (`_lsq_fast`, the crop's
+    corner an argument); with `return_info` it takes the general path: the same heights, on
+    a mask with two components, a hole and a lone pixel, and crops at two corners."""
+    mask = np.asarray(face.mask).copy()
+    mask[:, 19] = False
+    mask[20:24, 10:14] = False
+    mask[1, 1] = True
+    for m in (mask, np.pad(mask, ((40, 0), (0, 36)))):
+        normals = np.pad(np.asarray(face.normals), ((m.shape[0] - mask.shape[0], 0),
+                                                    (0, m.shape[1] - mask.shape[1]), (0, 0)))
+        fast = np.asarray(jaxps.integrate(normals, mask=m, method="lsq"))
+        general = jaxps.integrate(normals, mask=m, method="lsq", return_info=True)
+        assert general.converged
+        assert np.max(np.abs(fast - np.asarray(general.height))) < 1e-5 * np.ptp(fast[m])
+        assert np.all(fast[~m] == 0)
+
+
 @pytest.mark.parametrize("method", SOLVERS)
 def test_exact_gradients_recover_the_surface(face, method):
     mask = np.asarray(face.mask)

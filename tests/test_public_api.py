@@ -100,6 +100,8 @@ ADDED = {
 # entries rewritten.
 # Not from an issue: `brdf_photometric_stereo` and `stability.sweep` gained `progress` (a hook
 # told of their stages, such as `jaxps.report.progress_bar()`); those two entries rewritten.
+# Not from an issue: `jaxps.cli.reconstruct`'s default `integration` became "lsq" (the seeds'
+# "fc" bends real faces: benchmarks/bench_face_heights.py); that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

@@ -15,7 +15,7 @@ import jaxps
 from jaxps.core import _store
 
 # One fresh process: JAX's persistent cache and the store in `folder` (or the cache alone, or
-# neither), then L2 (clean and dropping samples) and FC / DCT integration on a small face.
+# neither), then L2 (clean and dropping samples) and FC / DCT / LSQ integration on a small face.
 # Prints the store's counts and writes the results to `out`.
 _SCRIPT = """
 import json, sys
@@ -43,6 +43,7 @@ arrays = {f"{name}_{field}": np.asarray(getattr(res, field))
           for field in ("normals", "albedo", "status", "n_used", "residual")}
 arrays["fc"] = np.asarray(jaxps.integrate(clean.normals))
 arrays["dct"] = np.asarray(jaxps.integrate(clean.normals, method="dct"))
+arrays["lsq"] = np.asarray(jaxps.integrate(clean.normals, mask=surface.mask, method="lsq"))
 np.savez(out, **arrays)
 before = jax_entries()
 import os
@@ -69,12 +70,12 @@ def test_a_new_process_loads_what_the_last_one_compiled_with_the_same_results(tm
     second = _run(folder, "store", tmp_path / "second.npz")
     plain = _run(tmp_path / "unused", "off", tmp_path / "plain.npz")
     # with the store on, L2's solve is chosen on the host: one flag pass (the thresholds are
-    # arguments), the clean and the weighted solve, and two programs each for FC and DCT
-    # and JAX's cache still takes the programs that are not in the store
-    assert first == {"loaded": 0, "compiled": 7, "plain": 0, "jax_cache_written": True}
-    assert second == {"loaded": 7, "compiled": 0, "plain": 0, "jax_cache_written": True}
+    # arguments), the clean and the weighted solve, and two programs each for FC, DCT and LSQ
+    # (`jaxps reconstruct`'s default); JAX's cache still takes the programs not in the store
+    assert first == {"loaded": 0, "compiled": 9, "plain": 0, "jax_cache_written": True}
+    assert second == {"loaded": 9, "compiled": 0, "plain": 0, "jax_cache_written": True}
     assert plain == {"loaded": 0, "compiled": 0, "plain": 0, "jax_cache_written": False}
-    assert len(list((folder / "executables").glob("*.exe"))) == 7
+    assert len(list((folder / "executables").glob("*.exe"))) == 9
     ref = np.load(tmp_path / "plain.npz")
     for name in ("jax_cache", "first", "second"):
         got = np.load(tmp_path / f"{name}.npz")

@@ -102,8 +102,10 @@ def reconstruct_parser(sub) -> None:
                    help="photometric-stereo method (default l2: on five-light faces no robust "
                    "method was more accurate; barsky suits strong, sharp highlights; "
                    "docs/captures.md)")
-    p.add_argument("--integration", default="fc", choices=INTEGRATION_METHODS,
-                   help="integration method (default fc)")
+    p.add_argument("--integration", default="lsq", choices=INTEGRATION_METHODS,
+                   help="integration method (default lsq: least squares on the mask, which "
+                   "bends real faces less than fc, the seeds' Frankot-Chellappa; "
+                   "docs/integration.md)")
     p.add_argument("--out", required=True, help="output folder (created if missing)")
     p.add_argument("--report", action="store_true",
                    help="also write lambertian_check.png and report.html (see 'jaxps report')")

@@ -66,7 +66,7 @@ def run(args) -> int:
     print(f"normals: median angular error {errors['angular_median_deg']:.3f} deg, mean "
           f"{errors['angular_mean_deg']:.3f} deg")
     print(f"height: RMS error {errors['height_rms_px']:.2f} px over a "
-          f"{truth_range:.1f} px relief (Frankot-Chellappa)")
+          f"{truth_range:.1f} px relief (integration {summary['integration']})")
     print("timings: " + ", ".join(f"{k} {v:.3f} s" for k, v in summary["timings_s"].items()))
     print(f"outputs: {args.out}/normals.png albedo.png height.npy mesh.obj mesh.ply points.ply "
           "preview.png summary.json")

@@ -45,7 +45,7 @@ def reconstruct(
     intensities: str = "frontal",
     shadow_threshold: float | None = None,
     method: str = "l2",
-    integration: str = "fc",
+    integration: str = "lsq",
     report: bool = False,
     check_quality: bool = True,
     obj: bool = False,
@@ -70,6 +70,10 @@ def reconstruct(
     the measured shifts and whether the frames were moved).
     `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`).
     `bits`: the camera's bit depth, for files that hold its codes unscaled (`load_capture`).
+    `integration`: a `jaxps.INTEGRATION_METHODS` name; the default `"lsq"` integrates over
+    the pixels solved, where `integrate`'s own default `"fc"` (the seeds' Frankot–Chellappa,
+    which also runs inside `jit`) treats the image as periodic and bends a face's borders
+    (docs/integration.md, "On real faces").
     `light_positions`, `pixel_size`: near point lights, for a rig whose lamps are close
     enough that their directions and fall-off change over the face: `(K, 3)` positions (or a
     file of `x y z` lines) in millimetres in the camera frame, the origin at the frame's centre

@@ -336,6 +336,40 @@ def _crop(valid):
     return tuple(box)
 
 
+def _lsq_fast(normals, mask, pixel_size, **solver):
+    """`integrate(method="lsq")` without intrinsics or info, as `jaxps reconstruct` calls it:
+    two programs of the store (`core._store`), so that a new process loads them instead of
+    tracing the multigrid solve and a dozen eager steps (a warm command's integration at 1 MP:
+    0.31-0.35 against 0.88 s, docs/integration.md "On real faces").
+    The crop's size is static (a multiple of `_BUCKET`, as in the general path) and its
+    corner a program argument, so captures of one size share a program."""
+    valid = stored_call(_valid_normals, normals, mask)
+    if not bool(np.any(np.asarray(valid))):
+        raise ValueError(_NO_VALID_NORMAL)
+    box = _crop(valid)
+    corner = to_device(np.array([box[0].start, box[1].start], np.int32))
+    return stored_call(_lsq_height, normals, mask, corner,
+                       to_device(pixel_size, normals.dtype),
+                       size=(box[0].stop - box[0].start, box[1].stop - box[1].start), **solver)
+
+
+@jax.jit
+def _valid_normals(normals, mask):
+    return _unit_normals.__wrapped__(normals, mask)[1]
+
+
+@functools.partial(jax.jit, static_argnames=("size", "rtol", "max_steps", "preconditioner"))
+def _lsq_height(normals, mask, corner, pixel_size, *, size, rtol, max_steps, preconditioner):
+    """The general path's `"lsq"` steps in one program, on the crop of `size` at `corner`."""
+    n, valid = _unit_normals.__wrapped__(normals, mask)
+    gc, gr = _height_steps(n, valid, None)
+    gc, gr, v = (jax.lax.dynamic_slice(a, (corner[0], corner[1]), size) for a in (gc, gr, valid))
+    out = lsq_midpoint(gc, gr, v, rtol=rtol, max_steps=max_steps, preconditioner=preconditioner)
+    eta = jax.lax.dynamic_update_slice(jnp.zeros(valid.shape, normals.dtype), out.z,
+                                       (corner[0], corner[1]))
+    return _to_height(eta, valid, None, pixel_size, everywhere=False)
+
+
 def _mean_over(z, valid, count=None):
     """The mean of `z` over `valid` (None: every pixel), which holds `count` pixels (counted
     here if None)."""
@@ -721,6 +755,9 @@ def integrate(
                            cam=cam, shape=shape)
     if mask is None:  # the general path reads a mask plane
         mask = to_device(np.ones(normals.shape[:2], bool))
+    if method == "lsq" and cam is None and not return_info:
+        return _lsq_fast(normals, mask, pixel_size, rtol=_LSQ_RTOL if cg_rtol is None else cg_rtol,
+                         max_steps=int(cg_max_steps), preconditioner=cg_preconditioner)
     n, valid = _unit_normals(normals, mask)
     if not traced and not bool(jnp.any(valid)):
         raise ValueError(_NO_VALID_NORMAL)
