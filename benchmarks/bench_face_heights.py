@@ -35,34 +35,12 @@ import numpy as np
 import jaxps
 
 try:
+    from benchmarks import bench_faces as faces
     from benchmarks._common import ROOT, arguments, block, data_dir, environment, write_json
-    from benchmarks.bench_faces import (
-        ALBEDO_MIN,
-        CROSS,
-        MAX_ANGLE,
-        SUBJECTS,
-        clean,
-        inner,
-        load_subject,
-        off_axis,
-        register_subject,
-        semi,
-    )
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks import bench_faces as faces
     from benchmarks._common import ROOT, arguments, block, data_dir, environment, write_json
-    from benchmarks.bench_faces import (
-        ALBEDO_MIN,
-        CROSS,
-        MAX_ANGLE,
-        SUBJECTS,
-        clean,
-        inner,
-        load_subject,
-        off_axis,
-        register_subject,
-        semi,
-    )
 
 METHODS = ("fc", "dct", "lsq", "bilateral")
 
@@ -72,7 +50,7 @@ def five_light_default(subject):
     from jaxps.acquisition import load_capture
 
     folder = data_dir() / "yaleb" / subject
-    paths = [folder / f"{subject}_P00A{a:+04d}E{e:+03d}.pgm" for a, e in CROSS]
+    paths = [folder / f"{subject}_P00A{a:+04d}E{e:+03d}.pgm" for a, e in faces.CROSS]
     cap = load_capture(paths, yale_names=True, ambient=folder / f"{subject}_P00_Ambient.pgm")
     return jaxps.photometric_stereo(cap.images, cap.lights, mask=cap.mask,
                                     sample_mask=~cap.saturated)
@@ -109,11 +87,12 @@ def score(normals, ok, reference, judged):
 
 
 def run_subject(subject):
-    frames, _ = register_subject(load_subject(subject))
-    keys, _ = clean(frames, sorted(k for k in frames if off_axis(*k) <= MAX_ANGLE))
-    ref = semi(frames, keys)
-    ref_ok = (np.asarray(ref.status == 0) & np.asarray(ref.albedo > ALBEDO_MIN)
-              & inner(ref.status.shape))
+    frames, _ = faces.register_subject(faces.load_subject(subject))
+    within = sorted(k for k in frames if faces.off_axis(*k) <= faces.MAX_ANGLE)
+    keys, _ = faces.clean(frames, within)
+    ref = faces.semi(frames, keys)
+    ref_ok = (np.asarray(ref.status == 0) & np.asarray(ref.albedo > faces.ALBEDO_MIN)
+              & faces.inner(ref.status.shape))
     five = five_light_default(subject)
     five_ok = np.asarray(five.status) == 0
     judged = ref_ok & five_ok
@@ -170,7 +149,7 @@ def loso(results, methods=METHODS, kind="five_light"):
 
 def main(argv=None):
     args = arguments(__doc__, configure=lambda p: p.add_argument(
-        "--subjects", nargs="*", default=list(SUBJECTS)), argv=argv)
+        "--subjects", nargs="*", default=list(faces.SUBJECTS)), argv=argv)
     results, maps = {}, {}
     for subject in args.subjects:
         results[subject], maps[subject] = run_subject(subject)
