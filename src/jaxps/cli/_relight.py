@@ -124,23 +124,21 @@ def relight_capture(
                                intensity_ratios=intensity_ratios, bits=bits)
             if cap.lights is None:
                 raise ValueError("no lights: give --lights FILE or --yale-names")
-            near_args = None
-            if positions is not None:
-                near_args = _near_capture(frames, cap, positions, pixel_size, intensity_mask)
-                cap = near_args[2]
-            return cap, near_args
+            if positions is None:
+                return None, None, cap
+            return _near_capture(frames, cap, positions, pixel_size, intensity_mask)
 
-        cap, near_args = stages.run("load frames", load, time_key="load")
+        near_positions, centre, cap = stages.run("load frames", load, time_key="load")
         images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
 
         def fit():
-            if near_args is None:
+            if near_positions is None:
                 ps = photometric_stereo(images, cap.lights, mask=cap.mask,
                                         sample_mask=~cap.saturated)
                 near, fit_images, fit_lights = None, images, cap.lights
             else:
-                near = near_photometric_stereo(images, near_args[0], mask=cap.mask,
-                                               pixel_size=pixel_size, centre=near_args[1],
+                near = near_photometric_stereo(images, near_positions, mask=cap.mask,
+                                               pixel_size=pixel_size, centre=centre,
                                                sample_mask=~cap.saturated)
                 ps = near.ps
                 # each sample as a unit-strength lamp at the pixel's own direction would give
@@ -193,7 +191,7 @@ def relight_capture(
         "note": "timings include JIT compilation",
     }
     if near is not None:
-        summary["near_lights"] = _near_summary(near, near_args[0], pixel_size, near_args[1])
+        summary["near_lights"] = _near_summary(near, near_positions, pixel_size, centre)
     write_json(os.path.join(out, "relight.json"), json.loads(json.dumps(summary)))
     return summary
 
