@@ -323,14 +323,14 @@ def sweep(
                 "specular": float((np.asarray(scene.specular)[:, m] > 0.02).mean()),
             })
             for meth in names:
+                label = f"{name}={value:g}: {meth}"
                 if meth == "near-l2":
-                    res = stages.run(f"{name}={value:g}: {meth}", near_photometric_stereo,
-                                     scene.images, extra["positions"], mask=m,
-                                     height0=extra["level"], pixel_size=extra["pixel"],
-                                     max_steps=8).ps
+                    res = stages.run(label, near_photometric_stereo, scene.images,
+                                     extra["positions"], mask=m, height0=extra["level"],
+                                     pixel_size=extra["pixel"], max_steps=8).ps
                 else:
-                    res = stages.run(f"{name}={value:g}: {meth}", photometric_stereo,
-                                     scene.images, solver_lights, mask=m, method=meth)
+                    res = stages.run(label, photometric_stereo, scene.images, solver_lights,
+                                     mask=m, method=meth)
                 _record(out["methods"][meth], res, scene.normals, m)
     return out
 

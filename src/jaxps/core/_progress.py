@@ -9,6 +9,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
+import jax
+
 ProgressHook = Callable[[str, int, int], None]
 """`hook(stage, done, total)`: called as each stage starts, with the stages finished so far,
 and once more at the end with `stage=""` and `done=total`."""
@@ -27,8 +29,6 @@ class Stages:
         self.times: dict[str, float] = {}
 
     def run(self, name: str, fn, *args, time_key: str | None = None, **kwargs):
-        import jax
-
         if self.hook is not None:
             self.hook(name, self.done, self.total)
         t0 = time.perf_counter()

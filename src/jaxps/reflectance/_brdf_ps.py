@@ -113,39 +113,33 @@ def brdf_photometric_stereo(
     with Stages(1 + 2 * iterations, progress) as stages:
         res = stages.run("L2 photometric stereo", photometric_stereo, images, lights, mask=mask,
                          time_key="l2")
-        return _iterate(images, lights, res, stages, method=method, iterations=iterations,
-                        key=key, max_steps=max_steps, fit_options=fit_options)
-
-
-def _iterate(images, lights, res, stages, *, method, iterations, key, max_steps, fit_options):
-    """`brdf_photometric_stereo`'s rounds after the L2 solve `res`, each stage on `stages`."""
-    h, w = images.shape[1:]
-    ok = np.asarray(res.status) == Status.OK
-    if not ok.any():
-        raise ValueError("no pixel solved by L2 photometric stereo: nothing to refine")
-    lights_j = jnp.asarray(res.normals.dtype.type(1) * np.asarray(lights, np.float32))
-    lights_j = lights_j / jnp.linalg.norm(lights_j, axis=-1, keepdims=True)
-    xy = pixel_coordinates(h, w, images.dtype)
-    normals, albedo, status, residual = res.normals, res.albedo, res.status, res.residual
-    models = []
-    for i in range(1, iterations + 1):
-        model = stages.run(f"fit {method} ({i}/{iterations})", fit_brdf, images, normals, albedo,
-                           lights_j, mask=ok, method=method, key=key, time_key=f"fit {i}",
-                           **fit_options)
-        models.append(model)
-        # the fit explains frame k as g_k times the model, so re-solve against I_k / g_k
-        frames = images
-        if model.fit.frame_gains is not None:
-            frames = images / jnp.asarray(model.fit.frame_gains, images.dtype)[:, None, None]
-        n, rho, conv, rms = stages.run(f"re-solve pixels ({i}/{iterations})", _solve_pixels,
-                                       model, frames, lights_j, normals, albedo, xy, max_steps,
-                                       time_key=f"solve {i}")
-        good = jnp.asarray(ok).reshape(-1) & jnp.all(jnp.isfinite(n), axis=-1) & (rho > 0)
-        normals = jnp.where(good[:, None], n, normals.reshape(-1, 3)).reshape(h, w, 3)
-        albedo = jnp.where(good, rho, albedo.reshape(-1)).reshape(h, w)
-        residual = jnp.where(good, rms, residual.reshape(-1)).reshape(h, w)
-        status = jnp.where(jnp.asarray(ok) & ~conv.reshape(h, w), Status.NOT_CONVERGED,
-                           res.status).astype(jnp.int32)
-    return PSResult(normals.astype(images.dtype), albedo.astype(images.dtype), status,
-                    res.n_used, residual.astype(images.dtype),
-                    {"models": models, "iterations": iterations, "times_s": stages.times})
+        h, w = images.shape[1:]
+        ok = np.asarray(res.status) == Status.OK
+        if not ok.any():
+            raise ValueError("no pixel solved by L2 photometric stereo: nothing to refine")
+        lights_j = jnp.asarray(res.normals.dtype.type(1) * np.asarray(lights, np.float32))
+        lights_j = lights_j / jnp.linalg.norm(lights_j, axis=-1, keepdims=True)
+        xy = pixel_coordinates(h, w, images.dtype)
+        normals, albedo, status, residual = res.normals, res.albedo, res.status, res.residual
+        models = []
+        for i in range(1, iterations + 1):
+            model = stages.run(f"fit {method} ({i}/{iterations})", fit_brdf, images, normals,
+                               albedo, lights_j, mask=ok, method=method, key=key,
+                               time_key=f"fit {i}", **fit_options)
+            models.append(model)
+            # the fit explains frame k as g_k times the model, so re-solve against I_k / g_k
+            frames = images
+            if model.fit.frame_gains is not None:
+                frames = images / jnp.asarray(model.fit.frame_gains, images.dtype)[:, None, None]
+            n, rho, conv, rms = stages.run(f"re-solve pixels ({i}/{iterations})", _solve_pixels,
+                                           model, frames, lights_j, normals, albedo, xy, max_steps,
+                                           time_key=f"solve {i}")
+            good = jnp.asarray(ok).reshape(-1) & jnp.all(jnp.isfinite(n), axis=-1) & (rho > 0)
+            normals = jnp.where(good[:, None], n, normals.reshape(-1, 3)).reshape(h, w, 3)
+            albedo = jnp.where(good, rho, albedo.reshape(-1)).reshape(h, w)
+            residual = jnp.where(good, rms, residual.reshape(-1)).reshape(h, w)
+            status = jnp.where(jnp.asarray(ok) & ~conv.reshape(h, w), Status.NOT_CONVERGED,
+                               res.status).astype(jnp.int32)
+        return PSResult(normals.astype(images.dtype), albedo.astype(images.dtype), status,
+                        res.n_used, residual.astype(images.dtype),
+                        {"models": models, "iterations": iterations, "times_s": stages.times})
