@@ -137,6 +137,31 @@ def test_lsq_in_two_stored_programs_equals_the_general_path(face):
         assert np.all(fast[~m] == 0)
 
 
+def test_lsq_crop_sides_come_from_a_ladder_that_face_boxes_share():
+    """`"lsq"` compiles once per crop size, so its sides follow a ladder (`_bucket`): 32-px
+    steps to 256, then four sizes per octave. Every side fits, grows by less than a quarter
+    (past 256) and is a multiple of 32; a face box whose side wanders over 513-640 px keeps
+    one size, where 32-px steps gave it four (`bench_lsq_buckets.py`)."""
+    from jaxps.integration._integrate import _bucket, _crop
+
+    n = np.arange(1, 5000)
+    b = np.array([_bucket(int(k)) for k in n])
+    assert np.all(b >= n) and np.all(b % 32 == 0) and np.all(np.diff(b) >= 0)
+    assert np.all(b[n > 256] < 1.25 * n[n > 256])
+    assert [_bucket(k) for k in (1, 33, 200, 256, 257, 500, 513, 700, 1000, 1025)] == \
+        [32, 64, 224, 256, 320, 512, 640, 768, 1024, 1280]
+    assert len(set(b[(n > 256) & (n <= 4096)])) == 16  # 320 ... 4096, four per octave
+    assert {_bucket(k) for k in range(513, 641)} == {640}
+    # in an image: the box grows about the pixels within the frame, or takes the whole side
+    valid = np.zeros((700, 900), bool)
+    valid[100:613, 880:900] = True
+    rows, cols = _crop(valid)
+    assert (rows.stop - rows.start, cols.stop - cols.start) == (640, 32)
+    assert rows.start <= 100 and rows.stop >= 613 and cols.stop == 900
+    valid[:, :] = True
+    assert _crop(valid) == (slice(0, 700), slice(0, 900))
+
+
 @pytest.mark.parametrize("method", SOLVERS)
 def test_exact_gradients_recover_the_surface(face, method):
     mask = np.asarray(face.mask)

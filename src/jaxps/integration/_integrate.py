@@ -55,7 +55,8 @@ INTEGRATION_METHODS: tuple[str, ...] = ("fc", "dct", "lsq", "bilateral", "auto")
 
 # n_z is floored here before dividing, so a grazing normal gives a gradient of at most ~20.
 _MIN_NZ = 0.05
-# Crops are padded up to a multiple of this, so objects of similar size share one compilation.
+# Crop sides are padded up to `_bucket`'s ladder, so objects of similar size share one
+# compilation; no side is padded to less than this.
 _BUCKET = 32
 # `"auto"`: a pixel whose |curl| exceeds _CURL_PIXEL (height units per pixel loop) is
 # non-integrable; more than _CURL_FRACTION of them in the mask picks "bilateral".
@@ -324,13 +325,24 @@ def _frankot_chellappa(dzdc, dzdr, mask, count, scale=1.0):
     return _fc_height(_fc_spectrum_jit(dzdc, dzdr, scale), mask, count, dzdc.shape)
 
 
+def _bucket(n: int) -> int:
+    """`n` rounded up to 32, 64, ..., 256, 320, 384, 448, 512, 640, ...: a multiple of 32 and of
+    a quarter of the power of two below `n`. A side grows by less than a quarter, a face box
+    that changes by tens of pixels keeps its size (one compile of the multigrid solve, ~2.5 s),
+    and the multigrid halves the side evenly. 32-px steps alone gave each new box its own
+    compile, and odd multiples of 32 solved more slowly (`benchmarks/bench_lsq_buckets.py`)."""
+    step = max(_BUCKET, 1 << max(0, (n - 1).bit_length() - 3))
+    return -(-n // step) * step
+
+
 def _crop(valid):
-    """Bounding box of `valid`, grown to a multiple of `_BUCKET` (within the image if possible)."""
+    """Bounding box of `valid`, its sides grown to `_bucket` sizes (within the image if
+    possible)."""
     rows, cols = np.nonzero(np.asarray(valid))
     box = []
     for lo, hi, size in ((rows.min(), rows.max() + 1, valid.shape[0]),
                          (cols.min(), cols.max() + 1, valid.shape[1])):
-        want = min(-(-(hi - lo) // _BUCKET) * _BUCKET, size)
+        want = min(_bucket(int(hi - lo)), size)
         lo = max(0, min(lo, size - want))
         box.append(slice(int(lo), int(lo + want)))
     return tuple(box)
@@ -341,8 +353,8 @@ def _lsq_fast(normals, mask, pixel_size, **solver):
     two programs of the store (`core._store`), so that a new process loads them instead of
     tracing the multigrid solve and a dozen eager steps (a warm command's integration at 1 MP:
     0.31-0.35 against 0.88 s, docs/integration.md "On real faces").
-    The crop's size is static (a multiple of `_BUCKET`, as in the general path) and its
-    corner a program argument, so captures of one size share a program."""
+    The crop's size is static (`_bucket`'s, as in the general path) and its corner a program
+    argument, so captures of one size share a program."""
     valid = stored_call(_valid_normals, normals, mask)
     if not bool(np.any(np.asarray(valid))):
         raise ValueError(_NO_VALID_NORMAL)
