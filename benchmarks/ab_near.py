@@ -4,7 +4,10 @@ against the same at an earlier revision, interleaved.
 Loads `src/jaxps/lights/_near.py` as it was at `--before` next to the current one, in one
 process, and times `near_light_field` of both (with the isotropic lamps of a scanner, mu = 0,
 and with an LED lobe, mu = 1.5) and `near_photometric_stereo` with each field (the current
-solver and integrator in both), in `--rounds` interleaved rounds after a first call of each.
+solver and integrator in both), in `--rounds` interleaved rounds after a first call of each;
+then `near_photometric_stereo` with today's field, integrating each step with `"lsq"` (the
+default since the twenty-seventh session) and with `"fc"` (before), timed the same way, with
+each height's RMS error (mm, mean-free over the face) against the rendered depth.
 The capture is rendered: the synthetic face (`face_like`, its mean depth at z = 0, 0.25 mm
 pixels) under five lamps 1000 mm away in the directions of `scanner_lights(20)`, Lambertian,
 albedo 0.6. Also recorded: the largest differences of the two fields and of the two
@@ -100,8 +103,31 @@ def main(argv=None):
                      "max_normal_difference_deg": float(np.degrees(np.arccos(cos[ok])).max()),
                      "max_height_difference_mm": float(np.abs(
                          np.asarray(now.height) - np.asarray(then.height))[mask].max())})
+        # the integrator of each step (twenty-seventh session: "lsq", was "fc"), today's field
+        depth = np.asarray(points)[..., 2]
+        calls = {m: (lambda m=m: jaxps.near_photometric_stereo(
+            images, positions, mask=mask, pixel_size=PIXEL_MM, integration=m).height)
+            for m in ("lsq", "fc")}
+        first, seconds = interleaved(calls, args.rounds)
+        row = {"work": "near_photometric_stereo, integration lsq (now) / fc (before)",
+               "unit": "ms", "now_ms": 1e3 * statistics.median(seconds["lsq"]),
+               "before_ms": 1e3 * statistics.median(seconds["fc"]),
+               "now_first_s": first["lsq"], "before_first_s": first["fc"]}
+        solved = {}
+        for m, side in (("lsq", "now"), ("fc", "before")):
+            solved[m] = jaxps.near_photometric_stereo(images, positions, mask=mask,
+                                                      pixel_size=PIXEL_MM, integration=m)
+            dz = (np.asarray(solved[m].height, np.float64) - depth)[mask]
+            row[f"{side}_height_rms_error_mm"] = float(np.sqrt(np.mean((dz - dz.mean()) ** 2)))
+        ok = mask & (np.asarray(solved["lsq"].ps.status) == 0) & (
+            np.asarray(solved["fc"].ps.status) == 0)
+        cos = np.clip(np.sum(np.asarray(solved["lsq"].ps.normals, np.float64)
+                             * np.asarray(solved["fc"].ps.normals, np.float64), -1), -1, 1)
+        row["max_normal_difference_deg"] = float(np.degrees(np.arccos(cos[ok])).max())
+        row["steps"] = [solved["lsq"].steps, solved["fc"].steps]
+        rows.append(row)
     for r in rows:
-        extra = {k: v for k, v in r.items() if k.startswith(("max_", "steps"))}
+        extra = {k: v for k, v in r.items() if k.startswith(("max_", "steps")) or "rms" in k}
         print(f"{r['work']:28s} now {r['now_ms']:8.1f} ms  before {r['before_ms']:8.1f} ms  "
               f"{r['now_ms'] / r['before_ms']:.2f}x  {extra}")
     path = write_json(args.name, {

@@ -102,6 +102,8 @@ ADDED = {
 # told of their stages, such as `jaxps.report.progress_bar()`); those two entries rewritten.
 # Not from an issue: `jaxps.cli.reconstruct`'s default `integration` became "lsq" (the seeds'
 # "fc" bends real faces: benchmarks/bench_face_heights.py); that entry rewritten.
+# Not from an issue: `near_photometric_stereo` gained `integration` (each step's integrator,
+# "lsq" by default, "fc" before: benchmarks/ab_near.py, tests/test_near.py); that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

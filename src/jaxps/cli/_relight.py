@@ -19,6 +19,7 @@ from ..reflectance import fit_brdf, relight
 from ..report._progress import progress_bar
 from ..report._writers import write_json
 from ._reconstruct import (
+    _NEAR_STEPS_INTEGRATION,
     _card_line,
     _intensities,
     _motion,
@@ -139,7 +140,8 @@ def relight_capture(
             else:
                 near = near_photometric_stereo(images, near_positions, mask=cap.mask,
                                                pixel_size=pixel_size, centre=centre,
-                                               sample_mask=~cap.saturated)
+                                               sample_mask=~cap.saturated,
+                                               integration=_NEAR_STEPS_INTEGRATION)
                 ps = near.ps
                 # each sample as a unit-strength lamp at the pixel's own direction would give
                 # it; a saturated one is left out (NaN) rather than brought below the
