@@ -21,6 +21,13 @@ height's RMS error (px) against the true height, over the face, both mean-free.
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_lsq_buckets.py
 
 Writes benchmarks/results/lsq_buckets.json and lsq_buckets.png.
+
+With `--emitters`, it compares instead the program that `"lsq"` runs as (`_lsq_height`)
+compiled with XLA-CPU's default emitters (`.plain`, as until the twenty-seventh session) and
+with the older ones (`.tuned`, now): for faces of three sizes in a 1024x1280 frame, each
+variant's compile time (`lower(...).compile()`, the two in turn, first one then the other
+for alternate sizes), the median of `--repeats` warm calls taken in turn, and the largest
+difference of the heights. Writes benchmarks/results/lsq_emitters.json.
 """
 
 from __future__ import annotations
@@ -100,6 +107,57 @@ def child(rule: str, captures: int, noise: float, seed: int, repeats: int) -> di
             "height_rms_px": rms, "jax": jax.__version__}
 
 
+def emitters(repeats: int, noise: float, seed: int) -> list[dict]:
+    import jax.numpy as jnp
+
+    from jaxps import synthetic
+    from jaxps.core._host import to_device
+    from jaxps.integration import _integrate
+
+    rng = np.random.default_rng(seed)
+    rows = []
+    for i, h in enumerate((300, 480, 620)):
+        face = synthetic.face_like(h)
+        fh, fw = face.mask.shape
+        top, left = (FRAME[0] - fh) // 2, (FRAME[1] - fw) // 2
+        normals = np.zeros((*FRAME, 3), np.float32)
+        normals[..., 2] = 1
+        mask = np.zeros(FRAME, bool)
+        normals[top:top + fh, left:left + fw] = np.asarray(face.normals)
+        mask[top:top + fh, left:left + fw] = np.asarray(face.mask)
+        normals += rng.normal(0, noise, normals.shape).astype(np.float32)
+        normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+        box = _integrate._crop(mask)
+        size = (box[0].stop - box[0].start, box[1].stop - box[1].start)
+        args = (to_device(normals), to_device(mask),
+                to_device(np.array([box[0].start, box[1].start], np.int32)),
+                to_device(1.0, jnp.float32))
+        static = {"size": size, "rtol": _integrate._LSQ_RTOL, "max_steps": 10_000,
+                  "preconditioner": "multigrid"}
+        variants = {"default emitters (before)": _integrate._lsq_height.plain,
+                    "older emitters (now)": _integrate._lsq_height.tuned}
+        order = list(variants) if i % 2 == 0 else list(variants)[::-1]
+        compiled, compile_s = {}, {}
+        for name in order:
+            t = time.perf_counter()
+            compiled[name] = variants[name].lower(*args, **static).compile()
+            compile_s[name] = time.perf_counter() - t
+        warm = {name: [] for name in variants}
+        for _ in range(repeats):
+            for name, f in compiled.items():
+                t = time.perf_counter()
+                f(*args).block_until_ready()
+                warm[name].append(time.perf_counter() - t)
+        a, b = (np.asarray(f(*args)) for f in compiled.values())
+        rows.append({"face_rows": h, "crop": list(size), "compile_order": order,
+                     "compile_s": compile_s,
+                     "warm_s_median": {k: float(np.median(v)) for k, v in warm.items()},
+                     "max_height_difference_px": float(np.abs(a - b).max()),
+                     "height_range_px": float(np.ptp(a[mask]))})
+        print(rows[-1], flush=True)
+    return rows
+
+
 def plot(results: list[dict], path: pathlib.Path) -> None:
     import matplotlib
 
@@ -134,7 +192,20 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--child", choices=RULES, help=argparse.SUPPRESS)
     ap.add_argument("--out", default="lsq_buckets")
+    ap.add_argument("--emitters", action="store_true",
+                    help="compare the default and the older XLA-CPU emitters instead")
     args = ap.parse_args()
+    meta = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
+                       "benchmarks/bench_lsq_buckets.py " + " ".join(sys.argv[1:]),
+            "frame": FRAME, "noise": args.noise, "seed": args.seed, "repeats": args.repeats,
+            "machine": platform.machine(), "cpus": os.cpu_count(),
+            "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")}
+    out_dir = ROOT / "benchmarks" / "results"
+    if args.emitters:
+        rows = emitters(args.repeats, args.noise, args.seed)
+        (out_dir / "lsq_emitters.json").write_text(json.dumps({"meta": meta, "rows": rows},
+                                                              indent=1) + "\n")
+        return
     if args.child:
         print(json.dumps(child(args.child, args.captures, args.noise, args.seed, args.repeats)))
         return
@@ -150,12 +221,7 @@ def main() -> None:
             print(f"round {round_} {rule:11s}: {r['distinct_sizes']} sizes, session "
                   f"{r['session_s']:.1f} s, warm median {np.median(r['warm_s']):.3f} s, "
                   f"height RMS median {np.median(r['height_rms_px']):.3f} px", flush=True)
-    out_dir = ROOT / "benchmarks" / "results"
-    meta = {"command": "OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python "
-                       "benchmarks/bench_lsq_buckets.py " + " ".join(sys.argv[1:]),
-            "frame": FRAME, "captures": args.captures, "noise": args.noise, "seed": args.seed,
-            "repeats": args.repeats, "machine": platform.machine(), "cpus": os.cpu_count(),
-            "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")}
+    meta["captures"] = args.captures
     (out_dir / f"{args.out}.json").write_text(json.dumps({"meta": meta, "runs": results},
                                                          indent=1) + "\n")
     plot(results, out_dir / f"{args.out}.png")

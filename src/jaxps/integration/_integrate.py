@@ -28,7 +28,14 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-from ..core._host import cpu_top_level, has_value, positive_scalar, to_device
+from ..core._host import (
+    OLDER_EMITTERS,
+    CpuTuned,
+    cpu_top_level,
+    has_value,
+    positive_scalar,
+    to_device,
+)
 from ..core._kept import (
     _HEIGHTS,
     _INTEGRATE_SCRATCH,
@@ -370,8 +377,7 @@ def _valid_normals(normals, mask):
     return _unit_normals.__wrapped__(normals, mask)[1]
 
 
-@functools.partial(jax.jit, static_argnames=("size", "rtol", "max_steps", "preconditioner"))
-def _lsq_height(normals, mask, corner, pixel_size, *, size, rtol, max_steps, preconditioner):
+def _lsq_height_of(normals, mask, corner, pixel_size, *, size, rtol, max_steps, preconditioner):
     """The general path's `"lsq"` steps in one program, on the crop of `size` at `corner`."""
     n, valid = _unit_normals.__wrapped__(normals, mask)
     gc, gr = _height_steps(n, valid, None)
@@ -380,6 +386,14 @@ def _lsq_height(normals, mask, corner, pixel_size, *, size, rtol, max_steps, pre
     eta = jax.lax.dynamic_update_slice(jnp.zeros(valid.shape, normals.dtype), out.z,
                                        (corner[0], corner[1]))
     return _to_height(eta, valid, None, pixel_size, everywhere=False)
+
+
+# With XLA-CPU's older loop emitters, as `lsq_midpoint` is compiled at the top level (inside
+# this program it is traced, so it would take the default ones): 1.09-1.65 against 2.05-2.90 s
+# to compile at crops of 320x224 to 640x512 px, and warm calls no slower
+# (`benchmarks/bench_lsq_buckets.py --emitters --repeats 9`).
+_lsq_height = CpuTuned(_lsq_height_of, OLDER_EMITTERS,
+                       static_argnames=("size", "rtol", "max_steps", "preconditioner"))
 
 
 def _mean_over(z, valid, count=None):
