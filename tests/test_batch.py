@@ -482,6 +482,15 @@ def test_cli_many_folders(tmp_path, capsys):
     assert "no frame files" in lines["c"]
     assert (tmp_path / "out" / "a" / "normals.png").is_file()
     assert not (tmp_path / "out" / "c").exists()
+    # each capture gets one capture's files, the same as a run on its folder alone (until the
+    # twenty-seventh session: normals, albedo and status only, with no height or mesh)
+    assert main(["reconstruct", folders[0], "--lights", str(light_file), "--out",
+                 str(tmp_path / "single")]) == 0
+    for name in ("albedo.png", "height.npy", "mesh.ply", "preview.png", "status.npy"):
+        assert (tmp_path / "out" / "a" / name).is_file(), name
+    height, alone = (np.load(tmp_path / run / "height.npy") for run in ("out/a", "single"))
+    np.testing.assert_allclose(height, alone, atol=1e-5 * np.ptp(alone))
+    assert np.ptp(height) > 5  # a face, 48 px high
     # the printed table is also OUT/summary.csv, one line per capture, same columns as JSON
     with open(tmp_path / "out" / "summary.csv", newline="") as f:
         table = list(csv.DictReader(f))
@@ -493,6 +502,15 @@ def test_cli_many_folders(tmp_path, capsys):
     # A method no capture can use is the caller's error, not a row per capture's.
     with pytest.raises(ValueError, match="method must be one of"):
         jaxps.reconstruct_many(folders, method="L2", lights=str(light_file), progress=False)
+    # --shadow-threshold reaches every capture's solve (it was ignored for several folders)
+    _, rows = jaxps.reconstruct_many(folders[:1], lights=str(light_file), progress=False,
+                                     shadow_threshold=0.3)
+    assert rows[0]["ok_pixels"] < summary[0]["ok_pixels"]
+    capsys.readouterr()
+    assert main(["reconstruct", *folders[:2], "--lights", str(light_file), "--report", "--out",
+                 str(tmp_path / "with_report")]) == 2
+    assert "--report takes one capture" in capsys.readouterr().err
+    assert not (tmp_path / "with_report").exists()
 
 
 def test_batch_sharded_over_two_host_devices():

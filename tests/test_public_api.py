@@ -104,6 +104,8 @@ ADDED = {
 # "fc" bends real faces: benchmarks/bench_face_heights.py); that entry rewritten.
 # Not from an issue: `near_photometric_stereo` gained `integration` (each step's integrator,
 # "lsq" by default, "fc" before: benchmarks/ab_near.py, tests/test_near.py); that entry rewritten.
+# Not from an issue: `reconstruct_many` gained `shadow_threshold` (`jaxps reconstruct DIR1 DIR2`
+# ignored `--shadow-threshold`); that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

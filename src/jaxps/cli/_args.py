@@ -84,7 +84,8 @@ def reconstruct_parser(sub) -> None:
         "mesh.ply (binary, vertex colours from the albedo), preview.png and summary.json to "
         "--out; with --obj also mesh.obj with mesh.mtl and the albedo as texture.png, with "
         "--points points.ply (point cloud with normals). "
-        "Several capture folders: per-capture maps, summary.json and summary.csv.",
+        "Several capture folders: each capture's files in OUT/<folder>/ (all but the report), "
+        "summary.json and summary.csv.",
     )
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
                    "several folders are several captures (one progress bar, a summary table)")

@@ -379,6 +379,7 @@ def reconstruct_many(
     progress: bool = True,
     light_positions=None,
     pixel_size: float | None = None,
+    shadow_threshold: float | None = None,
     **load_options,
 ) -> tuple[list[PSResult | None], list[dict]]:
     """Load, check and solve many capture folders, with one progress bar over the captures.
@@ -389,6 +390,7 @@ def reconstruct_many(
     its result is None; nothing is skipped silently. `light_positions`, `pixel_size`: near
     lamps, the same for every capture, as for `reconstruct` (each capture is then solved by
     `near_photometric_stereo`; the rows gain `near_steps` and `near_converged`).
+    `method`, `shadow_threshold`: as for `reconstruct`.
 
     **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
     `summary_table(rows)` formats the rows.
@@ -430,11 +432,12 @@ def reconstruct_many(
                 row["dropped"] = ", ".join(f"{f.name} ({f.reasons[0]})" for f in report.flagged)
             if positions is None:
                 res = photometric_stereo(images, lights, mask=cap.mask, sample_mask=sample_mask,
-                                         method=method)
+                                         method=method, shadow_threshold=shadow_threshold)
             else:
                 near = near_photometric_stereo(images, positions[kept], mask=cap.mask,
                                                pixel_size=pixel_size, centre=centre,
                                                method=method, sample_mask=sample_mask,
+                                               shadow_threshold=shadow_threshold,
                                                integration=_NEAR_STEPS_INTEGRATION)
                 res = near.ps
                 row.update(near_steps=int(near.steps), near_converged=bool(near.converged))
@@ -450,10 +453,15 @@ def reconstruct_many(
 
 
 def _run_many(args) -> int:
-    """`jaxps reconstruct DIR1 DIR2 ... --out OUT`: every folder is one capture; writes
-    `OUT/<folder>/normals.png`, `albedo.png`, `status.npy`, prints a summary table and writes
-    `OUT/summary.json` and `OUT/summary.csv` (the table). Returns 1 if any capture failed
-    (named in the table), else 0."""
+    """`jaxps reconstruct DIR1 DIR2 ... --out OUT`: every folder is one capture; writes into
+    `OUT/<folder>/` what one capture's run writes (`_write_outputs`: normals, albedo, the
+    height integrated with `--integration`, status, mesh.ply and the `--obj` / `--points`
+    meshes, preview), prints a summary table and writes `OUT/summary.json` and
+    `OUT/summary.csv` (the table). Returns 1 if any capture failed (named in the table), else
+    0. `--report` takes one capture."""
+    if args.report:
+        raise ValueError("--report takes one capture; give the frames of one capture, or run "
+                         "'jaxps reconstruct' on each folder with --report")
     load_options = dict(lights=args.lights, yale_names=args.yale_names, ambient=args.ambient,
                         mask=args.mask, crop_face=args.crop_face,
                         intensities=args.intensities, register=args.register,
@@ -463,16 +471,18 @@ def _run_many(args) -> int:
     results, rows = reconstruct_many(args.frames, method=args.method,
                                      check_quality=args.check_quality,
                                      light_positions=args.light_positions,
-                                     pixel_size=args.pixel_size, **load_options)
+                                     pixel_size=args.pixel_size,
+                                     shadow_threshold=args.shadow_threshold, **load_options)
     os.makedirs(args.out, exist_ok=True)
-    for folder, res, row in zip(args.frames, results, rows):
-        if res is None:
-            continue
-        sub = os.path.join(args.out, row["capture"])
-        os.makedirs(sub, exist_ok=True)
-        write_normal_map(os.path.join(sub, "normals.png"), np.asarray(res.normals))
-        write_albedo(os.path.join(sub, "albedo.png"), np.asarray(res.albedo))
-        np.save(os.path.join(sub, "status.npy"), np.asarray(res.status))
+    from tqdm.auto import tqdm
+
+    solved = [(res, row) for res, row in zip(results, rows) if res is not None]
+    for res, row in tqdm(solved, desc="integrate and write", unit="capture"):
+        ok = np.asarray(res.status) == Status.OK
+        height = np.asarray(integrate(res.normals, mask=ok if ok.any() else None,
+                                      method=args.integration))
+        _write_outputs(os.path.join(args.out, row["capture"]), res, height, ok, obj=args.obj,
+                       points=args.points, title=row["capture"])
     write_json(os.path.join(args.out, "summary.json"), {"captures": rows})
     write_csv(os.path.join(args.out, "summary.csv"), rows)
     print(summary_table(rows))
