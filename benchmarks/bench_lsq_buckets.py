@@ -1,7 +1,7 @@
 """How often `integrate(method="lsq")` compiles over a scanner's session, by crop-size rule.
 
 `"lsq"` solves on the box of the valid pixels, its sides grown to a bucket size, and the
-multigrid solve compiles once per size (about 2.5 s at 1 MP). A scanner's face boxes differ
+multigrid solve compiles once per size (1-3 s). A scanner's face boxes differ
 from capture to capture by tens of pixels. The session here: `--captures` synthetic faces
 (`synthetic.face_like`, 520-720 px tall, 0.8 as wide) at random places in 1024x1280 frames,
 their true normals with Gaussian noise (sd `--noise` per component, then normalised),
