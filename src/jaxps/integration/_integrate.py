@@ -389,9 +389,10 @@ def _lsq_height_of(normals, mask, corner, pixel_size, *, size, rtol, max_steps, 
 
 
 # With XLA-CPU's older loop emitters, as `lsq_midpoint` is compiled at the top level (inside
-# this program it is traced, so it would take the default ones): 1.09-1.65 against 2.05-2.90 s
-# to compile at crops of 320x224 to 640x512 px, and warm calls no slower
-# (`benchmarks/bench_lsq_buckets.py --emitters --repeats 9`).
+# this program it is traced, so it would take the default ones): it compiled in 1.10-1.46
+# against 1.71-2.44 s at crops of 320x224 to 640x512 px, with warm calls no slower
+# (`benchmarks/bench_lsq_buckets.py --emitters --repeats 9`), and `jaxps reconstruct`'s
+# first 1 MP run integrated in 2.16 and 1.95 s against 3.28 and 2.94 s (`bench_cli.py`).
 _lsq_height = CpuTuned(_lsq_height_of, OLDER_EMITTERS,
                        static_argnames=("size", "rtol", "max_steps", "preconditioner"))
 
