@@ -305,7 +305,9 @@ def near(seeds, lights) -> dict:
                 e = e / np.exp(np.mean(np.log(e)))
                 frames = jnp.asarray(np.clip(images / e[:, None, None], 0, 1), jnp.float32)
                 far = jaxps.photometric_stereo(frames, lights, mask=mask)
-                close = jaxps.near_photometric_stereo(frames, positions, mask=mask).ps
+                # normals only, scored as they were measured: with FC's steps
+                close = jaxps.near_photometric_stereo(frames, positions, mask=mask,
+                                                     integration="fc").ps
                 for store, res in ((errors, far), (near_errors, close)):
                     store.setdefault(name, []).append(jaxps.evaluate.angular_stats(
                         res.normals, face.normals, mask=mask)["median_deg"])
