@@ -58,6 +58,25 @@ def test_no_highlight_is_flagged():
     np.testing.assert_array_equal(cal.lights[1], [0, 0, 1])
 
 
+def test_a_frame_of_noise_has_no_highlight():
+    """A lamp that did not fire leaves noise: half its pixels are at or above half its
+    maximum, so it has no highlight (`max_fraction`), where its largest blob of noise gave a
+    light in a random direction."""
+    lights = jaxps.lights_from_angles([0, 20, -20], [0, 10, 10])
+    images, mask = _render_chrome(lights)
+    images[1] = np.random.default_rng(0).uniform(0, 0.05, images[1].shape)
+    noise = images[1][mask > 0]
+    assert 0.45 < np.mean(noise >= 0.5 * noise.max()) < 0.55
+    cal = jaxps.lights_from_chrome(images, mask)
+    np.testing.assert_array_equal(cal.ok, [True, False, True])
+    np.testing.assert_array_equal(cal.lights[1], [0, 0, 1])
+    assert _angles(cal.lights[[0, 2]], lights[[0, 2]]).max() < 0.2
+    unchecked = jaxps.lights_from_chrome(images, mask, max_fraction=1.0)  # the rule before
+    assert unchecked.ok.all() and _angles(unchecked.lights[1], lights[1]) > 10
+    with pytest.raises(ValueError, match="max_fraction"):
+        jaxps.lights_from_chrome(images, mask, max_fraction=0)
+
+
 def test_bad_input():
     with pytest.raises(ValueError, match="mask"):
         jaxps.sphere_from_mask(np.zeros((5, 5)))
@@ -75,6 +94,12 @@ def test_psm_chrome_against_lights_txt(data):
     ang = _angles(cal.lights, ref)
     # Measured: mean 3.1 deg, max 8.5 deg (light 1), 8 of 12 lights within 3 deg.
     assert cal.ok.all()
+    # Each highlight is a small spot: at or above 0.5 x its frame's maximum on the sphere,
+    # measured 0.15-0.23% of the sphere's pixels (`max_fraction` rejects over 5%).
+    inside = mask >= 0.5 * mask.max()
+    grey = images.mean(axis=-1)[:, inside]
+    fraction = np.mean(grey >= 0.5 * grey.max(axis=1, keepdims=True), axis=1)
+    assert 0.0014 < fraction.min() and fraction.max() < 0.0024
     assert ang.max() < 9.0 and ang.mean() < 3.5 and np.sum(ang < 3.0) >= 8
     # lights.txt is in the DESIGN frame: flipping x or y makes the agreement far worse.
     for flip in ([-1, 1, 1], [1, -1, 1]):

@@ -106,6 +106,9 @@ ADDED = {
 # "lsq" by default, "fc" before: benchmarks/ab_near.py, tests/test_near.py); that entry rewritten.
 # Not from an issue: `reconstruct_many` gained `shadow_threshold` (`jaxps reconstruct DIR1 DIR2`
 # ignored `--shadow-threshold`); that entry rewritten.
+# Not from an issue: `lights_from_chrome` gained `max_fraction` (a frame whose bright pixels
+# cover more of the sphere than that, such as the noise of a lamp that did not fire, has no
+# highlight); that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

@@ -94,7 +94,9 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
     if missing:
         raise ValueError(f"no highlight found inside the sphere's outline in frame(s) "
                          f"{', '.join(missing)}: is the light off, or its reflection outside "
-                         "the mask?")
+                         "the mask? (a highlight is a small bright spot: at most 5% of the "
+                         "sphere at or above --level x its brightest pixel; for a broad lamp "
+                         "raise --level)")
     try:
         lights = validate_lights(cal.lights)
     except ValueError as err:

@@ -14,6 +14,12 @@ that crosses the threshold enters or leaves with its full weight. On synthetic s
 41 px radius the largest error of five lights was 0.16-0.35 degrees (median over 8 seeds,
 for four kinds of lamp), against 0.51-0.81 for the intensity-weighted centroid of the pixels
 above 0.9 m (`benchmarks/bench_chrome.py`; docs/robust.md).
+
+A highlight is small: in shared/data/psm's twelve chrome frames the pixels at or above
+0.5 m cover 0.15-0.23% of the sphere (`tests/test_calibration.py`). A frame where they cover
+more than `max_fraction` has no highlight to find: a flash that did not fire leaves a frame of
+noise, about half of which is at or above half its maximum, and its largest blob of noise
+would otherwise give a light in a random direction.
 """
 
 from __future__ import annotations
@@ -32,7 +38,9 @@ class ChromeCalibration(NamedTuple):
     - `lights`: `(K, 3)` float32 unit directions toward the lights (DESIGN.md camera frame).
     - `highlights`: `(K, 2)` sub-pixel highlight centres `(row, col)`.
     - `centre`: `(row, col)` of the sphere; `radius` in pixels.
-    - `ok`: `(K,)` bool, False where no highlight was found (that light is then (0, 0, 1)).
+    - `ok`: `(K,)` bool, False where no highlight was found: no bright pixel on the sphere,
+      one outside its outline, or none that stands out (`max_fraction`). That light is then
+      (0, 0, 1).
     """
 
     lights: Float[np.ndarray, "K 3"]
@@ -65,6 +73,7 @@ def lights_from_chrome(
     mask: Float[ArrayLike, "H W"],
     *,
     level: float = 0.5,
+    max_fraction: float = 0.05,
 ) -> ChromeCalibration:
     """Distant light directions from images of a mirror sphere.
 
@@ -74,6 +83,9 @@ def lights_from_chrome(
     - `mask`: `(H, W)` the sphere's silhouette (bool, or anti-aliased grey).
     - `level`: a highlight is the pixels at or above `level` x the image's maximum $m$ on the
       sphere (the largest connected blob; its centroid with weights $I - \\text{level}\\, m$).
+    - `max_fraction`: in (0, 1]; a frame whose pixels at or above `level` x $m$ cover more
+      than this fraction of the sphere has no distinct highlight (a dark frame of noise, an
+      overexposed one, a matte ball), and its light is not `ok`.
 
     **Returns:** `ChromeCalibration`.
     """
@@ -87,6 +99,8 @@ def lights_from_chrome(
         raise ValueError(f"mask must have shape {images.shape[1:]}, got {mask.shape}")
     if not 0 < level <= 1:
         raise ValueError(f"level must be in (0, 1], got {level}")
+    if not 0 < max_fraction <= 1:
+        raise ValueError(f"max_fraction must be in (0, 1], got {max_fraction}")
     import scipy.ndimage as ndi  # here, not at import: `import jaxps` stays quick
 
     (r0, c0), radius = sphere_from_mask(mask)
@@ -100,7 +114,10 @@ def lights_from_chrome(
         top = vals.max()
         if not top > 0:
             continue
-        labels, count = ndi.label(vals >= level * top)
+        bright = vals >= level * top
+        if np.count_nonzero(bright) > max_fraction * np.count_nonzero(inside):
+            continue
+        labels, count = ndi.label(bright)
         sizes = ndi.sum_labels(vals, labels, index=np.arange(1, count + 1))
         blob = labels == 1 + int(np.argmax(sizes))
         weights = np.where(blob, vals - level * top, 0.0)
