@@ -376,6 +376,32 @@ def test_yale_capture_with_names_face_and_mask(data):
     assert 0.6 < cap.mask.mean() <= 1.0
 
 
+def test_a_lit_frame_given_as_the_ambient_is_an_error(data):
+    """An ambient-only frame is darker than the lit frames but for noise; a lit frame given in
+    its place (a wrong file name) is brighter than them over much of the face, and subtracting
+    it would leave each frame the difference of two lights, solved as if it were one."""
+    from jaxps.acquisition._capture import _AMBIENT_FRACTION, _below_ambient
+
+    names = ["A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20"]
+    right, wrong = [], []
+    for subject in ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05"):
+        folder = data / "yaleb" / subject
+        ambient = acq.read_image(folder / f"{subject}_P00_Ambient.pgm")
+        every = np.stack([acq.read_image(p) for p in sorted(folder.glob(f"{subject}_P00A*.pgm"))])
+        right.append(_below_ambient(every, ambient)[0].max())
+        cross = np.stack([acq.read_image(folder / f"{subject}_P00{n}.pgm") for n in names])
+        right.append(_below_ambient(cross, ambient)[0].max())
+        for k in range(5):
+            wrong.append(np.median(_below_ambient(np.delete(cross, k, 0), cross[k])[0]))
+    # Measured: at most 0.25% of any frame's pixels with the true ambient frame (all 64 frames
+    # of a subject, or its five cross frames); 14-58% of the median frame's with a cross frame.
+    assert max(right) < 0.003 < _AMBIENT_FRACTION < 0.13 < min(wrong)
+    folder = data / "yaleb" / "yaleB03"
+    paths = [folder / f"yaleB03_P00{n}.pgm" for n in names]
+    with pytest.raises(ValueError, match=r"ambient frame .*A\+000E\+20.pgm is brighter.*lit frame"):
+        acq.load_capture(paths, yale_names=True, ambient=paths[3])
+
+
 def test_face_detection_on_padded_tight_crop(data):
     img = acq.read_image(data / "yaleb" / "yaleB02" / "yaleB02_P00A+000E+00.pgm")
     box = acq.detect_face(img)
