@@ -427,7 +427,7 @@ def _minus_ambient_file(images, ambient, *, check=True, **read_options):
 # An ambient-only frame is darker than the lit frames, but for noise. In the 64 frames of each
 # shared Yale B subject at most 0.25% of the pixels are darker than the subject's ambient frame
 # by more than `_below_ambient`'s margin; with one of the five cross frames given as the
-# ambient instead, 14-58% of the other four's median frame (tests/test_acquisition.py).
+# ambient instead, 14-58% of the other four's median frame (benchmarks/input_checks.py).
 # Subtracting it anyway clips those pixels at 0 and leaves each frame the difference of two
 # lights, which the solve takes for one: wrong normals, with nothing in the status to say so.
 _AMBIENT_FRACTION = 0.05

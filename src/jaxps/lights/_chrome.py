@@ -16,7 +16,7 @@ for four kinds of lamp), against 0.51-0.81 for the intensity-weighted centroid o
 above 0.9 m (`benchmarks/bench_chrome.py`; docs/robust.md).
 
 A highlight is small: in shared/data/psm's twelve chrome frames the pixels at or above
-0.5 m cover 0.15-0.23% of the sphere (`tests/test_calibration.py`). A frame where they cover
+0.5 m cover 0.15-0.23% of the sphere (`benchmarks/input_checks.py`). A frame where they cover
 more than `max_fraction` has no highlight to find: a flash that did not fire leaves a frame of
 noise, about half of which is at or above half its maximum, and its largest blob of noise
 would otherwise give a light in a random direction.

@@ -1,0 +1,84 @@
+"""The figures behind two checks of bad input, on the shared real captures.
+
+- `lights_from_chrome(max_fraction=0.05)`: a highlight is a small spot. For each of psm's
+  twelve chrome frames (linear, as `load_psm` reads them), the fraction of the sphere's pixels
+  at or above 0.5 x the frame's maximum there; and the same for frames of uniform noise, what a
+  lamp that did not fire leaves.
+- `load_capture`'s ambient check (`acquisition/_capture.py`, `_below_ambient`): for each shared
+  Yale B subject, the largest fraction of a frame's pixels darker than the true ambient frame by
+  more than the check's margin, over all 64 frames and over the five cross frames; and, with
+  each cross frame given as the ambient instead, that fraction in the other four's median frame
+  (what the check compares with 5%).
+
+    PYTHONPATH=src python benchmarks/input_checks.py -> benchmarks/results/input_checks.json
+"""
+
+from __future__ import annotations
+
+import pathlib
+import sys
+
+import numpy as np
+
+import jaxps
+from jaxps import acquisition as acq
+from jaxps.acquisition._capture import _AMBIENT_FRACTION, _below_ambient
+
+try:
+    from benchmarks._common import arguments, data_dir, environment, write_json
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import arguments, data_dir, environment, write_json
+
+CROSS = ["A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20"]
+
+
+def chrome(data):
+    images, mask = jaxps.load_psm(data / "psm" / "chrome")
+    inside = mask >= 0.5 * mask.max()
+    grey = images.mean(axis=-1)[:, inside]
+    highlight = np.mean(grey >= 0.5 * grey.max(axis=1, keepdims=True), axis=1)
+    rng = np.random.default_rng(0)
+    noise = rng.uniform(0, 0.05, (8, int(inside.sum())))
+    noise_fraction = np.mean(noise >= 0.5 * noise.max(axis=1, keepdims=True), axis=1)
+    return {"highlight_fraction": highlight.tolist(), "noise_fraction": noise_fraction.tolist()}
+
+
+def ambient(data):
+    out = {}
+    for folder in sorted((data / "yaleb").glob("yaleB*")):
+        subject = folder.name
+        amb = acq.read_image(folder / f"{subject}_P00_Ambient.pgm")
+        every = np.stack([acq.read_image(p) for p in sorted(folder.glob(f"{subject}_P00A*.pgm"))])
+        cross = np.stack([acq.read_image(folder / f"{subject}_P00{n}.pgm") for n in CROSS])
+        out[subject] = {
+            "true_ambient_all_frames_max": float(_below_ambient(every, amb)[0].max()),
+            "true_ambient_cross_frames_max": float(_below_ambient(cross, amb)[0].max()),
+            "cross_frame_as_ambient_median_frame": {
+                n: float(np.median(_below_ambient(np.delete(cross, k, 0), cross[k])[0]))
+                for k, n in enumerate(CROSS)},
+        }
+    return out
+
+
+def main():
+    arguments(__doc__)
+    data = data_dir()
+    if not (data / "psm").is_dir() or not (data / "yaleb").is_dir():
+        sys.exit(f"needs the shared data (psm/ and yaleb/) under {data}")
+    result = {"environment": environment(), "chrome": chrome(data), "ambient": ambient(data),
+              "ambient_fraction_limit": _AMBIENT_FRACTION}
+    c = result["chrome"]
+    print(f"chrome: highlights cover {100 * min(c['highlight_fraction']):.2f}-"
+          f"{100 * max(c['highlight_fraction']):.2f}% of the sphere; noise "
+          f"{100 * min(c['noise_fraction']):.1f}-{100 * max(c['noise_fraction']):.1f}%")
+    for subject, r in result["ambient"].items():
+        wrong = r["cross_frame_as_ambient_median_frame"].values()
+        print(f"{subject}: true ambient at most {100 * r['true_ambient_all_frames_max']:.2f}% "
+              f"(all 64 frames), {100 * r['true_ambient_cross_frames_max']:.2f}% (cross); a cross "
+              f"frame as the ambient {100 * min(wrong):.1f}-{100 * max(wrong):.1f}%")
+    print(write_json("input_checks", result))
+
+
+if __name__ == "__main__":
+    main()
