@@ -402,6 +402,29 @@ def test_a_lit_frame_given_as_the_ambient_is_an_error(data):
         acq.load_capture(paths, yale_names=True, ambient=paths[3])
 
 
+def test_a_lit_frame_given_as_the_ambient_is_an_error_on_a_synthetic_face(tmp_path):
+    """Away from the shared data: a rendered face under five scanner lights over room light,
+    with sensor noise; its true ambient frame passes, a lit frame in its place does not."""
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(96),
+                                         jaxps.synthetic.scanner_lights(20.0))
+    rng = np.random.default_rng(1)
+    room = 0.05 + 0.02 * rng.uniform(size=scene.images.shape[1:])
+    paths = []
+    for k, img in enumerate(scene.images):
+        noisy = img + room + rng.normal(0, 0.004, img.shape)
+        paths.append(tmp_path / f"f{k}.png")
+        cv2.imwrite(str(paths[-1]), np.round(np.clip(noisy, 0, 1) * 65535).astype(np.uint16))
+    ambient = room + rng.normal(0, 0.004, room.shape)
+    cv2.imwrite(str(tmp_path / "ambient.png"),
+                np.round(np.clip(ambient, 0, 1) * 65535).astype(np.uint16))
+    kw = {"lights": scene.lights, "intensities": "none", "register": False}
+    cap = acq.load_capture(paths, ambient=tmp_path / "ambient.png", **kw)
+    assert cap.images.shape == scene.images.shape
+    for k in range(5):
+        with pytest.raises(ValueError, match=f"ambient frame .*f{k}.png is brighter"):
+            acq.load_capture(paths, ambient=paths[k], **kw)
+
+
 def test_face_detection_on_padded_tight_crop(data):
     img = acq.read_image(data / "yaleb" / "yaleB02" / "yaleB02_P00A+000E+00.pgm")
     box = acq.detect_face(img)
