@@ -403,24 +403,22 @@ def _semi_calibrated(grey, lights, mask, sample_mask):
     return np.asarray(info["intensities"], np.float32), fit
 
 
-def _minus_ambient_file(images, ambient, *, check=True, **read_options):
+def _minus_ambient_file(images, ambient, **read_options):
     """`images` (a stack the caller owns) with the frame in the file `ambient`
     (`read_image(ambient, **read_options)`) subtracted in place and clipped at 0; a
-    `ValueError` names the file if its shape is not the frames', or (`check`) if it is brighter
-    than the frames over much of the image (`_lit_ambient`)."""
+    `ValueError` names the file if its shape is not the frames', or if it is brighter than the
+    median frame over much of the image (`_below_ambient`)."""
     amb = read_image(ambient, **read_options)
     if amb.shape != images.shape[1:]:
         raise ValueError(f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, frames "
                          f"have {images.shape[1:]}")
-    if check:
-        fractions, tau = _below_ambient(images, amb)
-        fraction = float(np.median(fractions))
-        if fraction > _AMBIENT_FRACTION:
-            raise ValueError(
-                f"ambient frame {os.fspath(ambient)} is brighter than the lit frames: the "
-                f"median frame is darker than it by more than {tau:.3g} at "
-                f"{100 * fraction:.0f}% of the pixels. Is it a lit frame? The ambient frame is "
-                "taken with every light off.")
+    fractions, tau = _below_ambient(images, amb)
+    fraction = float(np.median(fractions))
+    if fraction > _AMBIENT_FRACTION:
+        raise ValueError(
+            f"ambient frame {os.fspath(ambient)} is brighter than the lit frames: the median "
+            f"frame is darker than it by more than {tau:.3g} at {100 * fraction:.0f}% of the "
+            "pixels. Is it a lit frame? The ambient frame is taken with every light off.")
     return _subtract_ambient(images, amb, out=images)
 
 

@@ -81,7 +81,7 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
         if path is not None and not _is_auto(path) and not os.path.isfile(path):
             raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
     names = [os.path.basename(p) for p in paths]
-    images, _ = _frames(paths, ambient, bits, check_ambient=False)
+    images, _ = _frames(paths, ambient, bits)
     silhouette = read_image(mask, linearize="none")
     if silhouette.ndim == 3:
         silhouette = silhouette.max(axis=-1)
@@ -154,13 +154,12 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
     return report
 
 
-def _frames(paths, ambient, bits, check_ambient=True):
+def _frames(paths, ambient, bits):
     """The frames at `paths` (`load_stack` at `bits`), `ambient` (a file, or None)
-    subtracted; `check_ambient`: see `_minus_ambient_file` (a mirror sphere's frames are dark
-    but for one highlight, where a lit ambient frame does not stand out)."""
+    subtracted."""
     images, saturated = load_stack(paths, bits=bits)
     if ambient is not None:
-        images = _minus_ambient_file(images, ambient, check=check_ambient, bits=bits)
+        images = _minus_ambient_file(images, ambient, bits=bits)
     return images, saturated
 
 
