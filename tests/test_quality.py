@@ -29,6 +29,7 @@ def test_clean_capture_passes():
     ("saturated", 3, "saturated"),
     ("dark", 4, "dark"),
     ("truncated", 1, "truncated"),
+    ("blank", 3, r"blank: every pixel 0 \("),
     ("other_scene", 2, "inconsistent"),
 ])
 def test_corruption_is_flagged(kind, frame, words):
@@ -44,13 +45,17 @@ def test_corruption_is_flagged(kind, frame, words):
         frames[frame] = f * 0.01
     elif kind == "truncated":
         f[-20:] = 0.0
+    elif kind == "blank":  # e.g. the ambient frame given as a frame too: zero once subtracted
+        f[:] = 0.0
     elif kind == "other_scene":
         frames[frame] = np.asarray(jax_random_frame(f.shape))
-    report = jaxps.check_frames(frames, mask=None if kind == "truncated" else scene.mask,
+    report = jaxps.check_frames(frames, mask=None if kind in ("truncated", "blank") else scene.mask,
                                 names=[f"f{i}.png" for i in range(5)])
     assert [c.index for c in report.flagged] == [frame], report.summary()
     assert re.search(words, report.summary())
     assert f"f{frame}.png" in report.summary()
+    if kind == "blank":  # not taken for a short read
+        assert "truncated" not in report.summary(), report.summary()
     kept_frames, kept_lights, kept = jaxps.drop_flagged(frames, scene.lights, report)
     assert list(kept) == [i for i in range(5) if i != frame]
     assert kept_frames.shape[0] == 4 and kept_lights.shape == (4, 3)

@@ -18,7 +18,8 @@ Measures per frame (grey mean of the channels, inside `mask` where one is given)
   more than the median frame of the capture: a few black rows are an ordinary border, and a
   blank surround that every frame shares (a synthetic render, a background clipped to 0 by the
   ambient subtraction) is not a short read, which hits one file. `check_file` finds short
-  PGM/PPM files from their headers.
+  PGM/PPM files from their headers. A frame of one value throughout is flagged *blank*
+  instead: there is no image in it to have been cut short.
 - `dark_fraction`, `saturated_fraction`: fractions of pixels below `dark_level` / at or above
   `saturation`; `nonfinite_fraction`. A frame is flagged dark when more than `dark_fraction` of
   its pixels are below `dark_level` and it is dark for the capture too: nearly all of it
@@ -269,9 +270,13 @@ def check_frames(
         if mi["nonfinite_fraction"] > 0:
             reasons[i].append(f"non-finite values in {mi['nonfinite_fraction']:.1%} of pixels")
         if mi["truncated_rows"] - blank >= max(t.min_truncated_rows, t.truncated_fraction * h):
-            reasons[i].append(
-                f"truncated: last {int(mi['truncated_rows'])} rows constant (short read; "
-                f"the median frame has {blank:g})")
+            if mi["truncated_rows"] >= h:  # one value throughout: no image to cut short
+                reasons[i].append(f"blank: every pixel {float(grey[i][-1, 0]):.3g} (an empty "
+                                  "frame, or a frame with itself subtracted as the ambient)")
+            else:
+                reasons[i].append(
+                    f"truncated: last {int(mi['truncated_rows'])} rows constant (short read; "
+                    f"the median frame has {blank:g})")
         if mi["comb"] > t.comb:
             reasons[i].append(
                 f"row/interlace artefact: vertical/horizontal second difference "
