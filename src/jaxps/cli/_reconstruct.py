@@ -123,9 +123,7 @@ def reconstruct(
                                       shadow_threshold=shadow_threshold)
 
         res = stages.run("photometric stereo", solve)
-        ok = np.asarray(res.status) == 0
-        height = stages.run("integrate", lambda: np.asarray(
-            integrate(res.normals, mask=ok if ok.any() else None, method=integration)))
+        height, ok = stages.run("integrate", lambda: _integrate_solved(res, integration))
 
         def write():
             return _write_outputs(out, res, height, ok, obj=obj, points=points,
@@ -167,6 +165,13 @@ def reconstruct(
     if report:
         write_report(out)
     return summary
+
+
+def _integrate_solved(res, method):
+    """`(height, ok)`: `res`'s normals integrated with `method` over the pixels it solved
+    (`ok`, status OK), or over the whole image when it solved none."""
+    ok = np.asarray(res.status) == Status.OK
+    return np.asarray(integrate(res.normals, mask=ok if ok.any() else None, method=method)), ok
 
 
 def _write_outputs(out, res, height, ok, *, obj=False, points=False, title="", threads=2):
@@ -478,9 +483,7 @@ def _run_many(args) -> int:
 
     solved = [(res, row) for res, row in zip(results, rows) if res is not None]
     for res, row in tqdm(solved, desc="integrate and write", unit="capture"):
-        ok = np.asarray(res.status) == Status.OK
-        height = np.asarray(integrate(res.normals, mask=ok if ok.any() else None,
-                                      method=args.integration))
+        height, ok = _integrate_solved(res, args.integration)
         _write_outputs(os.path.join(args.out, row["capture"]), res, height, ok, obj=args.obj,
                        points=args.points, title=row["capture"])
     write_json(os.path.join(args.out, "summary.json"), {"captures": rows})

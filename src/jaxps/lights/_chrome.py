@@ -105,6 +105,7 @@ def lights_from_chrome(
 
     (r0, c0), radius = sphere_from_mask(mask)
     inside = mask >= 0.5 * mask.max()
+    most_bright = max_fraction * np.count_nonzero(inside)  # pixels a highlight may cover
     k = images.shape[0]
     lights = np.tile([0.0, 0.0, 1.0], (k, 1))
     highlights = np.full((k, 2), np.nan)
@@ -115,7 +116,7 @@ def lights_from_chrome(
         if not top > 0:
             continue
         bright = vals >= level * top
-        if np.count_nonzero(bright) > max_fraction * np.count_nonzero(inside):
+        if np.count_nonzero(bright) > most_bright:
             continue
         labels, count = ndi.label(bright)
         sizes = ndi.sum_labels(vals, labels, index=np.arange(1, count + 1))
