@@ -27,10 +27,12 @@ ADDED = {
     # Issue 18: `release_batch_outputs`, which frees the batch results kept for reuse.
     # Not from an issue: `angles_from_lights` and `save_lights`, the inverse of
     # `lights_from_angles` and the writer of the lights.txt that `load_lights` reads, which
-    # `jaxps calibrate` uses.
-    "jaxps": ["RelightScore", "acquisition", "angles_from_lights", "cli", "core",
-              "flash_visibility", "integration", "lights", "ps", "reflectance",
-              "release_batch_outputs", "report", "save_lights", "score_relighting", "shading"],
+    # `jaxps calibrate` uses. Not from an issue: `check_lights` and its result `LightCheck`
+    # (is a lights file mirrored, or turned by 180 degrees? `load_capture` runs it).
+    "jaxps": ["LightCheck", "RelightScore", "acquisition", "angles_from_lights",
+              "check_lights", "cli", "core", "flash_visibility", "integration", "lights", "ps",
+              "reflectance", "release_batch_outputs", "report", "save_lights",
+              "score_relighting", "shading"],
     # Issue 18: `bucket_box`, face boxes grown to shape buckets (fewer compiles).
     # Issue 17: `target_ratios`, a reference target's per-light calibration for near lights.
     "jaxps.acquisition": ["FrameCheck", "QualityReport", "QualityThresholds", "Registration",
@@ -109,6 +111,8 @@ ADDED = {
 # Not from an issue: `lights_from_chrome` gained `max_fraction` (a frame whose bright pixels
 # cover more of the sphere than that, such as the noise of a lamp that did not fire, has no
 # highlight); that entry rewritten.
+# Not from an issue: `Capture` gained `light_check` (`check_lights` of the capture as loaded);
+# that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

@@ -17,6 +17,7 @@ import numpy as np
 from jaxtyping import Bool, Float
 
 from ..core._host import aligned, aligned_empty
+from ..lights._check import LightCheck, check_lights
 from ..lights._directions import lights_from_angles, load_lights, parse_yale_name, validate_lights
 from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ..ps._photometric_stereo import photometric_stereo
@@ -60,6 +61,8 @@ class Capture(NamedTuple):
       (start, used) and `visibility` (`jaxps.flash_visibility` of the lights); else None.
     - `frame_size`: `(height, width)` of the frames as read, before any crop (the frame that
       `crop` is a box of, and in which near lamps' positions are measured).
+    - `light_check`: `jaxps.check_lights` of the frames, lights and mask as returned (is the
+      lights file mirrored, or turned by 180 degrees?), or None without lights.
     """
 
     images: np.ndarray
@@ -76,6 +79,7 @@ class Capture(NamedTuple):
     registered: bool = False
     intensity_fit: dict | None = None
     frame_size: tuple[int, int] | None = None
+    light_check: LightCheck | None = None
 
 
 def load_capture(
@@ -283,10 +287,15 @@ def load_capture(
         shape = (-1,) + (1,) * (images.ndim - 1)
         images = np.divide(images, e.reshape(shape),
                            out=aligned_empty(images.shape, np.float32))
+    light_check = None
+    if light_array is not None:
+        light_check = check_lights(images, light_array, mask_array)
+        if light_check.flagged:
+            logging.getLogger("jaxps").warning("load_capture: %s", light_check.summary())
     return Capture(aligned(images, np.float32), light_array, mask_array,
                    saturated, names, box, (1 / e).astype(np.float32),
                    tuple(n for n in given if n not in names), e, method, shifts, border > 0,
-                   fit, tuple(int(v) for v in full_size))
+                   fit, tuple(int(v) for v in full_size), light_check)
 
 
 def target_ratios(

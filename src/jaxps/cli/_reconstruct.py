@@ -143,6 +143,7 @@ def reconstruct(
         "gains": cap.gains.round(6).tolist(),
         "intensities": _intensities(cap, intensity_mask, intensity_normal, intensity_ratios),
         "motion": _motion(cap),
+        "light_check": _light_check(cap),
         "method": method,
         "integration": integration,
         "mask_pixels": int(cap.mask.sum()),
@@ -328,6 +329,16 @@ def _motion(cap) -> dict:
     return {"shifts_px": shifts, "registered": bool(cap.registered)}
 
 
+def _light_check(cap) -> dict | None:
+    """The summary's record of `load_capture`'s `check_lights` (None without lights)."""
+    c = cap.light_check
+    if c is None:
+        return None
+    rounded = lambda v: None if not np.isfinite(v) else round(float(v), 4)
+    return {"curl": rounded(c.curl), "convexity": rounded(c.convexity),
+            "mirrored": bool(c.mirrored), "hollow": bool(c.hollow), "summary": c.summary()}
+
+
 def run(args) -> int:
     if len(args.frames) > 1 and all(os.path.isdir(f) for f in args.frames):
         return _run_many(args)
@@ -395,7 +406,8 @@ def reconstruct_many(
     its result is None; nothing is skipped silently. `light_positions`, `pixel_size`: near
     lamps, the same for every capture, as for `reconstruct` (each capture is then solved by
     `near_photometric_stereo`; the rows gain `near_steps` and `near_converged`).
-    `method`, `shadow_threshold`: as for `reconstruct`.
+    `method`, `shadow_threshold`: as for `reconstruct`. The `lights` column gives
+    `load_capture`'s `check_lights` verdict: `ok`, `mirrored?`, `hollow?` or `unchecked`.
 
     **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
     `summary_table(rows)` formats the rows.
@@ -414,7 +426,7 @@ def reconstruct_many(
     bar = tqdm(list(folders), desc="captures", unit="capture", disable=not progress)
     for folder in bar:
         row = {"capture": os.path.basename(os.path.normpath(os.fspath(folder))), "frames": 0,
-               "dropped": "", "ok_pixels": 0, "ok_%": 0.0, "error": ""}
+               "dropped": "", "lights": "", "ok_pixels": 0, "ok_%": 0.0, "error": ""}
         if positions is not None:
             row.update(near_steps=0, near_converged=False)
         res = None
@@ -423,6 +435,9 @@ def reconstruct_many(
             cap = load_capture(folder, check_quality=False, **load_options)
             if cap.lights is None:
                 raise ValueError("no lights (give lights= or yale_names=True)")
+            c = cap.light_check
+            row["lights"] = ("mirrored?" if c.mirrored else "hollow?" if c.hollow
+                             else "unchecked" if c.unchecked else "ok")
             if positions is not None:  # load_capture has matched the frames to the lamps
                 centre = _frame_centre(cap)
                 if load_options.get("intensity_mask") is None:

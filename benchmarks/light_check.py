@@ -1,0 +1,206 @@
+"""The figures behind `jaxps.check_lights`: the normals' curl and convexity with the lights
+as given, and with the lights file wrong in the ways an operator gets it wrong.
+
+- Each shared Yale B subject's five scanner frames, loaded as `jaxps reconstruct
+  --yale-names --ambient` loads them (`load_capture` defaults, no mask), with the lights as
+  given; negated in y (image rows for y) and in x; the left and right lamps swapped; the
+  four outer lamps turned by a quarter; turned by 180 degrees; the centre lamp swapped with
+  the right one.
+- Each subject's `--random` sets of five of the 64 lights (mean-equalised frames, as read),
+  with the lights as given: where the shadows of wide lights break the least-squares normals.
+- psm's cat and owl, under its twelve lights, inside their masks.
+- Its time on the synthetic face's five frames, 192x168 and 1280x1024 (median of 7).
+- Away from the shared data: the synthetic face of `jaxps.synthetic.face_like` under the
+  scanner's five lights, at three noise levels, and a flat, tilted plane, as given and
+  mirrored.
+
+    PYTHONPATH=src python benchmarks/light_check.py -> benchmarks/results/light_check.json
+"""
+
+from __future__ import annotations
+
+import logging
+import pathlib
+import sys
+import time
+
+import numpy as np
+
+import jaxps
+from jaxps import acquisition as acq
+from jaxps import synthetic
+
+try:
+    from benchmarks._common import arguments, data_dir, environment, write_json
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import arguments, data_dir, environment, write_json
+
+CROSS = ["A+000E+00", "A+025E+00", "A-025E+00", "A+000E+20", "A+000E-20"]
+# The five cross lights in CROSS's order: centre, right of the image (+25 lights the left),
+# left, above, below. Each wrong lights file as a function of the right one.
+WRONG = {
+    "y negated": lambda l: l * [1, -1, 1],
+    "x negated": lambda l: l * [-1, 1, 1],
+    "left and right swapped": lambda l: l[[0, 2, 1, 3, 4]],
+    "quarter turn": lambda l: l[[0, 3, 4, 2, 1]],
+    "180 degrees": lambda l: l[[0, 2, 1, 4, 3]],
+    "centre and one outer swapped": lambda l: l[[1, 0, 2, 3, 4]],
+}
+
+
+def _figures(images, lights, mask=None, max_zenith_deg=50.0):
+    c = jaxps.check_lights(images, lights, mask, max_zenith_deg=max_zenith_deg)
+    return {"curl": round(c.curl, 4), "convexity": round(c.convexity, 4), "mirrored": c.mirrored,
+            "hollow": c.hollow, "loops": c.loops, "block": c.block, "unchecked": c.unchecked}
+
+
+def yale(data, random_sets):
+    out = {}
+    rng = np.random.default_rng(0)
+    for folder in sorted((data / "yaleb").glob("yaleB*")):
+        s = folder.name
+        ambient = folder / f"{s}_P00_Ambient.pgm"
+        cap = acq.load_capture([folder / f"{s}_P00{n}.pgm" for n in CROSS], yale_names=True,
+                               ambient=ambient)
+        if len(cap.names) != len(CROSS):  # B02: the frame check drops a combed frame
+            cap = acq.load_capture([folder / f"{s}_P00{n}.pgm" for n in CROSS],
+                                   yale_names=True, ambient=ambient, check_quality=False)
+        lights = np.asarray(cap.lights, np.float64)
+        row = {"given": _figures(cap.images, lights, cap.mask)}
+        for name, wrong in WRONG.items():
+            row[name] = _figures(cap.images, wrong(lights), cap.mask)
+        every = acq.load_capture(folder, yale_names=True, ambient=ambient, intensities="mean",
+                                 register=False)
+        for zenith in (180, 50):
+            label = ("random five of 64" if zenith == 180 else
+                     f"random five within {zenith} deg") + ", given"
+            row[label] = _random_sets(every, zenith, random_sets, rng)
+        out[s] = row
+    return out
+
+
+def _random_sets(capture, zenith, count, rng):
+    """`count` random sets of five of `capture`'s lights within `zenith` degrees of the view
+    axis, as given: the largest curl and convexity, and how many sets were flagged."""
+    near = np.flatnonzero(capture.lights[:, 2] >= np.cos(np.radians(zenith)) - 1e-6)
+    sets = []
+    for _ in range(count):
+        pick = rng.choice(near, 5, replace=False)
+        try:
+            sets.append(_figures(capture.images[pick], capture.lights[pick],
+                                 max_zenith_deg=zenith))
+        except ValueError:  # five lights that do not span 3-D
+            continue
+    curl = np.array([r["curl"] for r in sets])
+    convexity = np.array([r["convexity"] for r in sets])
+    return {"lights_to_pick_from": len(near), "sets": len(sets),
+            "not_measured": int(np.isnan(curl).sum()), "curl_max": float(np.nanmax(curl)),
+            "curl_median": float(np.nanmedian(curl)),
+            "convexity_max": float(np.nanmax(convexity)),
+            "flagged": sum(r["mirrored"] or r["hollow"] for r in sets),
+            "unchecked": sum(bool(r["unchecked"]) for r in sets)}
+
+
+def psm(data):
+    lights = jaxps.load_lights(data / "psm" / "lights.txt")
+    out = {}
+    for obj in ("cat", "owl"):
+        images, mask = jaxps.load_psm(data / "psm" / obj)
+        out[obj] = {"given": _figures(images, lights, mask > 0.5),
+                    "y negated": _figures(images, lights * [1, -1, 1], mask > 0.5),
+                    "180 degrees": _figures(images, lights * [-1, -1, 1], mask > 0.5)}
+    return out
+
+
+def synthetic_scenes():
+    lights = np.asarray(synthetic.scanner_lights(20.0), np.float64)
+    out = {}
+    face = synthetic.face_like(200)
+    for noise in (0.0, 0.01, 0.03):
+        images = np.asarray(synthetic.render_scene(face, lights, noise=noise, key=1).images)
+        out[f"face, noise {noise}"] = {
+            "given": _figures(images, lights, face.mask),
+            **{name: _figures(images, wrong(lights), face.mask)
+               for name, wrong in WRONG.items()}}
+    n = np.array([0.2, -0.1, 1.0]) / np.linalg.norm([0.2, -0.1, 1.0])
+    plane = np.clip(lights @ n, 0, None)[:, None, None] * np.ones((5, 160, 160))
+    images = plane + 0.01 * np.random.default_rng(1).standard_normal(plane.shape)
+    out["tilted plane, noise 0.01"] = {"given": _figures(images, lights),
+                                       "y negated": _figures(images, lights * [1, -1, 1])}
+    return out
+
+
+def timing(repeats=7):
+    """Median seconds of `check_lights` on the synthetic face's five frames at two sizes."""
+    lights = np.asarray(synthetic.scanner_lights(20.0), np.float64)
+    out = {}
+    for h, w in ((192, 168), (1024, 1280)):
+        images = np.asarray(synthetic.render_scene(synthetic.face_like(h, w), lights).images)
+        times = []
+        for _ in range(repeats):
+            t = time.perf_counter()
+            jaxps.check_lights(images, lights)
+            times.append(time.perf_counter() - t)
+        out[f"{h}x{w}x5"] = float(np.median(times))
+    return out
+
+
+def leave_one_out(yaleb):
+    """Each subject held out: the thresholds midway between the other four's figures with the
+    lights as given (the cross and the random sets within 50 degrees) and wrong (mirrored:
+    y negated, x negated, left and right swapped; turned by 180 degrees), and whether they
+    tell the held-out subject's right lights from its wrong ones."""
+    def figures(row):
+        random = row["random five within 50 deg, given"]
+        return {"curl_right": max(row["given"]["curl"], random["curl_max"]),
+                "curl_mirrored": min(row[k]["curl"] for k in
+                                     ("y negated", "x negated", "left and right swapped")),
+                "convexity_right": max(row["given"]["convexity"], random["convexity_max"]),
+                "convexity_turned": row["180 degrees"]["convexity"]}
+    per = {s: figures(row) for s, row in yaleb.items()}
+    out = {}
+    for held, f in per.items():
+        rest = [v for s, v in per.items() if s != held]
+        curl = 0.5 * (max(v["curl_right"] for v in rest) + min(v["curl_mirrored"] for v in rest))
+        conv = 0.5 * (max(v["convexity_right"] for v in rest)
+                      + min(v["convexity_turned"] for v in rest))
+        out[held] = {"curl_threshold": round(curl, 3), "convexity_threshold": round(conv, 3),
+                     "right_passes": f["curl_right"] <= curl and f["convexity_right"] <= conv,
+                     "wrong_flagged": f["curl_mirrored"] > curl and f["convexity_turned"] > conv}
+    return out
+
+
+def main():
+    args = arguments(__doc__, configure=lambda p: p.add_argument(
+        "--random", type=int, default=200, help="random five-light sets per Yale B subject"))
+    data = data_dir()
+    if not (data / "psm").is_dir() or not (data / "yaleb").is_dir():
+        sys.exit(f"needs the shared data (psm/ and yaleb/) under {data}")
+    logging.getLogger("jaxps").setLevel(logging.ERROR)  # the frame check's list of wide lights
+    result = {"environment": environment(), "random_sets": args.random,
+              "yaleb": yale(data, args.random), "psm": psm(data),
+              "synthetic": synthetic_scenes()}
+    result["leave_one_subject_out"] = leave_one_out(result["yaleb"])
+    result["seconds"] = timing()
+    for group in ("yaleb", "psm", "synthetic"):
+        for name, row in result[group].items():
+            cells = [f"{k} {v['curl']:.2f}/{v['convexity']:+.2f}"
+                     f"{' M' if v.get('mirrored') else ''}{' H' if v.get('hollow') else ''}"
+                     for k, v in row.items() if "curl" in v]
+            extra = [f"{k}: curl max {v['curl_max']:.2f}, median {v['curl_median']:.2f}, "
+                     f"convexity max {v['convexity_max']:+.2f}; {v['flagged']} of {v['sets']} "
+                     f"flagged, {v['not_measured']} not measured"
+                     for k, v in row.items() if "curl_max" in v]
+            print(f"{name}: " + "; ".join(cells + extra))
+    for held, r in result["leave_one_subject_out"].items():
+        print(f"{held} held out: curl threshold {r['curl_threshold']:.2f}, convexity "
+              f"{r['convexity_threshold']:+.2f} from the others; its right lights pass: "
+              f"{r['right_passes']}, its wrong ones flagged: {r['wrong_flagged']}")
+    print("check_lights: " + ", ".join(f"{k} {1e3 * v:.1f} ms"
+                                       for k, v in result["seconds"].items()))
+    print(write_json("light_check", result))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,183 @@
+"""Do the lights fit the frames? A check of a lights file's axes against the normals it gives.
+
+A lights file in another axis convention (y measured down the image rows, an azimuth of the
+other sign) or with mirror-image lamps swapped gives normals that fit the frames exactly as
+well: the least-squares residual cannot tell. The shape can. Mirroring the lights in x or y
+mirrors the gradients, $(p, q) \\to (-p, q)$ or $(p, -q)$, and an integrable field
+($\\partial p / \\partial y = \\partial q / \\partial x$) becomes one whose curl is twice either
+derivative. So the share of curl in the gradients' derivatives tells the convention apart, with
+no model of the object. Turning the lights by 180 degrees gives $(-p, -q)$, integrable again:
+the same object, hollow. Its sign of curvature tells that one apart, for objects that bulge
+toward the camera, as faces do.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+from jaxtyping import ArrayLike, Bool, Float
+
+from ._directions import validate_lights
+
+__all__ = ["LightCheck", "check_lights"]
+
+# The frames are block-averaged to about this many cells across the lit object before the
+# normals are solved: the curl of pixel noise would otherwise swamp the object's.
+_CELLS_ACROSS = 48
+# Below this many 2x2 loops of cells the check gives no verdict.
+_MIN_LOOPS = 50
+# `curl` above which the lights are called mirrored (mirrored, they would give below 0.65):
+# between the lights as given and mirrored on real captures (`benchmarks/light_check.py`,
+# docs/robust.md "A lights file in the wrong convention").
+MIRRORED_CURL = 1.35
+# `convexity` above which the surface is called hollow.
+HOLLOW_CONVEXITY = 0.1
+
+
+class LightCheck(NamedTuple):
+    """What `check_lights` found.
+
+    - `curl`: in [0, 2], the share of curl in the normals' gradient field,
+      $\\sum (p_y - q_x)^2 / \\sum (p_y^2 + q_x^2)$ over loops of cells: 0 for an integrable
+      field, about 1 for noise, 2 - c for the same lights mirrored in x or y. NaN when fewer
+      than 50 loops could be measured.
+    - `convexity`: in [-1, 1], $\\sum (p_x + q_y) / \\sum (|p_x| + |q_y|)$: negative for a surface
+      that bulges toward the camera, positive for a hollow one. NaN as `curl`.
+    - `mirrored`: `curl` > `MIRRORED_CURL` = 1.35: the lights mirrored in x or y fit the
+      frames' shape better (a wrong sign of one axis, or mirror-image lamps swapped).
+    - `hollow`: `convexity` > 0.1 and not `mirrored`: the surface is hollow; for a face, the
+      lights are turned by 180 degrees (x and y both negated).
+    - `loops`: the number of 2x2 loops of cells measured.
+    - `block`: the side in pixels of the cells the frames were averaged over.
+    - `unchecked`: why there is no verdict (`curl` NaN), or "" when there is one.
+    """
+
+    curl: float
+    convexity: float
+    mirrored: bool
+    hollow: bool
+    loops: int
+    block: int
+    unchecked: str = ""
+
+    @property
+    def flagged(self) -> bool:
+        return self.mirrored or self.hollow
+
+    def summary(self) -> str:
+        """One paragraph for a person: what was measured and, when flagged, what to check."""
+        if self.unchecked:
+            return f"lights: not checked against the frames: {self.unchecked}"
+        said = (f"lights: curl {self.curl:.2f} of the normals' gradients (0 integrable, about 1 "
+                f"noise), convexity {self.convexity:+.2f} (negative: bulging toward the camera)")
+        if self.mirrored:
+            said += (f". The same lights mirrored in x or y would give curl "
+                     f"{2 - self.curl:.2f}: is the lights file mirrored? DESIGN.md's camera frame "
+                     "has x right, y UP (not down the image rows), z toward the viewer; check the "
+                     "sign of each axis, of the azimuths, and that left and right (or upper and "
+                     "lower) lamps are not swapped")
+        elif self.hollow:
+            said += (". The surface is hollow: if it should bulge toward the camera (a face "
+                     "does), the lights are turned by 180 degrees (x and y both negated, or "
+                     "opposite lamps swapped)")
+        return said
+
+
+def check_lights(
+    images: Float[ArrayLike, "K H W *C"],
+    lights: Float[ArrayLike, "K 3"],
+    mask: Bool[ArrayLike, "H W"] | None = None,
+    *,
+    max_zenith_deg: float = 50.0,
+) -> LightCheck:
+    """Check that `lights` are in the frames' axis convention, from the shape they give.
+
+    Each frame (grey: the channel mean) is averaged over square blocks, about 48 across the lit
+    part of `mask`, and the normals are solved by least squares; blocks whose normal leans more
+    than 78 degrees from the view axis are left out. Over every 2x2 loop of blocks left, the
+    gradients $p = -n_x/n_z$, $q = -n_y/n_z$ give `curl` and `convexity` (see `LightCheck`).
+
+    On the shared Yale B faces' five scanner frames, the lights as given gave curl 0.36-0.45
+    and mirrored 1.55-1.64; 200 random sets of five of each face's lights within 50 degrees
+    at most 1.03; psm's cat and owl 0.33 and 0.47 (mirrored 1.67, 1.53). Turned by 180
+    degrees, the faces' convexity went from -0.15..-0.21 to +0.15..+0.21. A quarter turn of the
+    scanner's four outer lamps gave 1.16-1.22 and is not flagged; a swap of the centre lamp
+    with an outer one changes neither figure much (`benchmarks/light_check.py`, docs/robust.md
+    "A lights file in the wrong convention").
+
+    **Arguments:**
+    - `images`: `(K, H, W)` or `(K, H, W, C)` frames, ambient subtracted, intensities
+      equalised (as `load_capture` gives them).
+    - `lights`: `(K, 3)` unit lights in the camera frame, as given.
+    - `mask`: `(H, W)` bool, the object (default: every pixel; dark pixels are left out).
+    - `max_zenith_deg`: no verdict when a light is further than this from the view axis.
+      Such lights shadow much of a face, where the least-squares normals, and so their curl,
+      are wrong: sets of five of all of Yale B's lights gave up to 1.38 as given.
+
+    **Returns:** a `LightCheck`.
+
+    **Raises:** `ValueError` naming `images`, `lights` or `mask` when shapes disagree or the
+    lights do not span 3-D.
+    """
+    if not 0 < max_zenith_deg <= 180:
+        raise ValueError(f"max_zenith_deg must be in (0, 180], got {max_zenith_deg}")
+    images = np.asarray(images, np.float32)
+    if images.ndim not in (3, 4):
+        raise ValueError(f"images must be (K, H, W) or (K, H, W, C), got shape {images.shape}")
+    lights = validate_lights(lights).astype(np.float64)
+    if len(lights) != len(images):
+        raise ValueError(f"lights: {len(lights)} lights for {len(images)} frames (images)")
+    grey = images if images.ndim == 3 else images.mean(axis=-1)
+    h, w = grey.shape[1:]
+    mask = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
+    if mask.shape != (h, w):
+        raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {mask.shape}")
+    zenith = np.degrees(np.arccos(np.clip(lights[:, 2], -1, 1)))
+    if zenith.max() > max_zenith_deg:
+        return _unchecked(0, 1, f"light {int(zenith.argmax())} is {zenith.max():.0f} degrees "
+                                f"from the view axis, more than max_zenith_deg="
+                                f"{max_zenith_deg:g}")
+    # The level of the lit part of the mask and its extent (which sets the block size), found
+    # on every 4th row and column; a block is kept when each of its pixels is lit.
+    sub, sub_mask = grey[:, ::4, ::4].mean(axis=0), mask[::4, ::4]
+    level = 0.1 * np.nanpercentile(sub[sub_mask], 99) if sub_mask.any() else np.nan
+    rows, cols = np.nonzero(sub_mask & (sub > level))
+    if not len(rows):
+        return _unchecked(0, 1, "no lit pixel in the mask")
+    side = 4 * int(max(rows.max() - rows.min(), cols.max() - cols.min())) + 4
+    f = max(1, round(side / _CELLS_ACROSS))
+    g = _blocks(grey, f)
+    lit = mask & (grey.mean(axis=0) > level)
+    keep = _blocks(lit[None].astype(np.float32), f)[0] == 1
+    b = np.einsum("ck,khw->chw", np.linalg.pinv(lights), g)
+    keep &= b[2] > 0.2 * np.linalg.norm(b, axis=0)  # |p|, |q| <= 4.9: no edge dominates
+    nz = np.where(keep, b[2], 1)
+    p, q = np.where(keep, -b[0] / nz, 0), np.where(keep, -b[1] / nz, 0)
+    # Derivatives at the centre of each 2x2 loop; y is up, so a row down is -1 in y.
+    dx = lambda a: 0.5 * (a[1:, 1:] - a[1:, :-1] + a[:-1, 1:] - a[:-1, :-1])
+    dy = lambda a: -0.5 * (a[1:, 1:] - a[:-1, 1:] + a[1:, :-1] - a[:-1, :-1])
+    loop = keep[1:, 1:] & keep[:-1, 1:] & keep[1:, :-1] & keep[:-1, :-1]
+    loops = int(loop.sum())
+    if loops < _MIN_LOOPS:
+        return _unchecked(loops, f, f"{loops} loops of {f}-pixel cells lit and facing the "
+                                    f"camera, need {_MIN_LOOPS}")
+    py, qx, px, qy = dy(p)[loop], dx(q)[loop], dx(p)[loop], dy(q)[loop]
+    curl = float(np.sum((py - qx) ** 2) / max(np.sum(py ** 2 + qx ** 2), 1e-30))
+    convexity = float(np.sum(px + qy) / max(np.sum(np.abs(px) + np.abs(qy)), 1e-30))
+    mirrored = curl > MIRRORED_CURL
+    return LightCheck(curl, convexity, mirrored, not mirrored and convexity > HOLLOW_CONVEXITY,
+                      loops, f)
+
+
+def _unchecked(loops, block, why):
+    return LightCheck(np.nan, np.nan, False, False, loops, block, why)
+
+
+def _blocks(stack, f):
+    """`(K, H, W)` averaged over `f` x `f` blocks (the ragged last rows and columns dropped)."""
+    if f == 1:
+        return stack
+    k, h, w = stack.shape
+    h, w = h // f * f, w // f * f
+    return stack[:, :h, :w].reshape(k, h // f, f, w // f, f).mean(axis=(2, 4))
