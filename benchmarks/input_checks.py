@@ -10,6 +10,11 @@
   each cross frame given as the ambient instead, that fraction in the other four's median frame
   (what the check compares with 5%).
 
+- `load_capture`'s mask check (`_dark_in_mask`): for psm's cat and owl, the fraction of the
+  mask's pixels dark in the mean frame, and of the lit pixels outside it, with the object's
+  own mask, the other object's and its own inverted; the same for a rendered face (no shared
+  data).
+
     PYTHONPATH=src python benchmarks/input_checks.py -> benchmarks/results/input_checks.json
 """
 
@@ -22,7 +27,12 @@ import numpy as np
 
 import jaxps
 from jaxps import acquisition as acq
-from jaxps.acquisition._capture import _AMBIENT_FRACTION, _below_ambient
+from jaxps.acquisition._capture import (
+    _AMBIENT_FRACTION,
+    _DARK_MASK_FRACTION,
+    _below_ambient,
+    _dark_in_mask,
+)
 
 try:
     from benchmarks._common import arguments, data_dir, environment, write_json
@@ -61,13 +71,31 @@ def ambient(data):
     return out
 
 
+def masks(data):
+    own = {o: jaxps.load_psm(data / "psm" / o)[1] > 0.5 for o in ("cat", "owl")}
+    out = {}
+    for obj, other in (("cat", "owl"), ("owl", "cat")):
+        images = jaxps.load_psm(data / "psm" / obj)[0]
+        out[obj] = {name: dict(zip(("dark_inside", "lit_outside"), _dark_in_mask(images, m)))
+                    for name, m in (("own", own[obj]), ("other object's", own[other]),
+                                    ("own, inverted", ~own[obj]))}
+    scene = jaxps.synthetic.render_scene(jaxps.synthetic.face_like(96),
+                                         jaxps.synthetic.scanner_lights(20.0), noise=0.01, key=1)
+    images, face = np.asarray(scene.images), np.asarray(scene.mask)
+    out["rendered face"] = {name: dict(zip(("dark_inside", "lit_outside"),
+                                           _dark_in_mask(images, m)))
+                            for name, m in (("own", face), ("own, inverted", ~face))}
+    return out
+
+
 def main():
     arguments(__doc__)
     data = data_dir()
     if not (data / "psm").is_dir() or not (data / "yaleb").is_dir():
         sys.exit(f"needs the shared data (psm/ and yaleb/) under {data}")
     result = {"environment": environment(), "chrome": chrome(data), "ambient": ambient(data),
-              "ambient_fraction_limit": _AMBIENT_FRACTION}
+              "ambient_fraction_limit": _AMBIENT_FRACTION, "masks": masks(data),
+              "dark_mask_fraction_limit": _DARK_MASK_FRACTION}
     c = result["chrome"]
     print(f"chrome: highlights cover {100 * min(c['highlight_fraction']):.2f}-"
           f"{100 * max(c['highlight_fraction']):.2f}% of the sphere; noise "
@@ -77,6 +105,10 @@ def main():
         print(f"{subject}: true ambient at most {100 * r['true_ambient_all_frames_max']:.2f}% "
               f"(all 64 frames), {100 * r['true_ambient_cross_frames_max']:.2f}% (cross); a cross "
               f"frame as the ambient {100 * min(wrong):.1f}-{100 * max(wrong):.1f}%")
+    for obj, rows in result["masks"].items():
+        print(f"{obj}: " + "; ".join(f"{name} mask {100 * r['dark_inside']:.1f}% dark inside, "
+                                     f"{100 * r['lit_outside']:.1f}% of the lit outside"
+                                     for name, r in rows.items()))
     print(write_json("input_checks", result))
 
 

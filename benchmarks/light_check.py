@@ -50,7 +50,7 @@ WRONG = {
 
 
 def _figures(images, lights, mask=None, max_zenith_deg=50.0):
-    c = jaxps.check_lights(images, lights, mask, max_zenith_deg=max_zenith_deg)
+    c = jaxps.check_lights(images, lights, mask=mask, max_zenith_deg=max_zenith_deg)
     return {"curl": round(c.curl, 4), "convexity": round(c.convexity, 4), "mirrored": c.mirrored,
             "hollow": c.hollow, "loops": c.loops, "block": c.block, "unchecked": c.unchecked}
 

@@ -32,7 +32,7 @@ def face():
 
 def test_a_rendered_face_with_its_lights_is_integrable_and_bulges(face):
     images, lights, mask = face
-    c = jaxps.check_lights(images, lights, mask)
+    c = jaxps.check_lights(images, lights, mask=mask)
     assert c.curl < 0.15 and c.convexity < -0.4  # integrable; bulging toward the camera
     assert not c.flagged and c.unchecked == "" and c.loops > 1000
     assert "curl 0.0" in c.summary() and "mirrored" not in c.summary()
@@ -41,8 +41,8 @@ def test_a_rendered_face_with_its_lights_is_integrable_and_bulges(face):
 @pytest.mark.parametrize("wrong", list(MIRRORED))
 def test_mirrored_lights_give_two_minus_the_curl(face, wrong):
     images, lights, mask = face
-    right = jaxps.check_lights(images, lights, mask)
-    c = jaxps.check_lights(images, MIRRORED[wrong](lights), mask)
+    right = jaxps.check_lights(images, lights, mask=mask)
+    c = jaxps.check_lights(images, MIRRORED[wrong](lights), mask=mask)
     # (p, q) -> (-p, q) or (p, -q): every loop's curl is the other derivative's sum
     assert c.curl == pytest.approx(2 - right.curl, abs=1e-6) and c.loops == right.loops
     assert c.mirrored and not c.hollow
@@ -51,8 +51,8 @@ def test_mirrored_lights_give_two_minus_the_curl(face, wrong):
 
 def test_lights_turned_by_180_degrees_give_a_hollow_face(face):
     images, lights, mask = face
-    right = jaxps.check_lights(images, lights, mask)
-    c = jaxps.check_lights(images, TURNED(lights), mask)
+    right = jaxps.check_lights(images, lights, mask=mask)
+    c = jaxps.check_lights(images, TURNED(lights), mask=mask)
     assert c.curl == pytest.approx(right.curl, abs=1e-6)  # (-p, -q) is integrable too
     assert c.convexity == pytest.approx(-right.convexity, abs=1e-6)
     assert c.hollow and not c.mirrored and "turned by 180 degrees" in c.summary()
@@ -72,33 +72,34 @@ def test_no_verdict_for_wide_lights_or_too_few_pixels(face):
     images, lights, mask = face
     wide = lights.copy()
     wide[1] = [np.sin(np.radians(60)), 0, np.cos(np.radians(60))]
-    c = jaxps.check_lights(images, wide, mask)
+    c = jaxps.check_lights(images, wide, mask=mask)
     assert np.isnan(c.curl) and not c.flagged and "60 degrees" in c.unchecked
     assert "not checked" in c.summary()
-    assert np.isfinite(jaxps.check_lights(images, wide, mask, max_zenith_deg=61).curl)
+    assert np.isfinite(jaxps.check_lights(images, wide, mask=mask, max_zenith_deg=61).curl)
     tiny = np.zeros_like(mask)
     tiny[70:74, 60:64] = True
-    c = jaxps.check_lights(images, lights, tiny)
+    c = jaxps.check_lights(images, lights, mask=tiny)
     assert np.isnan(c.curl) and "need 50" in c.unchecked
 
 
 def test_bad_input_names_the_argument(face):
     images, lights, mask = face
     with pytest.raises(ValueError, match="lights: 4 lights for 5 frames"):
-        jaxps.check_lights(images, lights[:4], mask)
+        jaxps.check_lights(images, lights[:4], mask=mask)
     with pytest.raises(ValueError, match="mask must have shape"):
-        jaxps.check_lights(images, lights, mask[1:])
+        jaxps.check_lights(images, lights, mask=mask[1:])
     with pytest.raises(ValueError, match="images must be"):
-        jaxps.check_lights(images[0], lights, mask)
+        jaxps.check_lights(images[0], lights, mask=mask)
     with pytest.raises(ValueError, match="max_zenith_deg"):
-        jaxps.check_lights(images, lights, mask, max_zenith_deg=0)
+        jaxps.check_lights(images, lights, mask=mask, max_zenith_deg=0)
 
 
 def test_colour_frames_are_checked_on_their_grey(face):
     images, lights, mask = face
     colour = images[..., None] * np.array([0.9, 1.0, 0.7], np.float32)
-    grey = jaxps.check_lights(colour.mean(axis=-1), lights, mask)
-    assert jaxps.check_lights(colour, lights, mask).curl == pytest.approx(grey.curl, abs=1e-6)
+    grey = jaxps.check_lights(colour.mean(axis=-1), lights, mask=mask)
+    got = jaxps.check_lights(colour, lights, mask=mask)
+    assert got.curl == pytest.approx(grey.curl, abs=1e-6)
 
 
 def test_yale_faces_right_and_wrong_lights(data, caplog):
@@ -121,7 +122,7 @@ def test_yale_faces_right_and_wrong_lights(data, caplog):
                                        f"{s}_P00_Ambient.pgm", check_quality=False)
             assert got.light_check.mirrored, (s, name)
             assert "is the lights file mirrored?" in caplog.text, (s, name)
-        turned = jaxps.check_lights(cap.images, TURNED(cap.lights), cap.mask)
+        turned = jaxps.check_lights(cap.images, TURNED(cap.lights), mask=cap.mask)
         assert turned.hollow and turned.convexity > 0.1, s
 
 

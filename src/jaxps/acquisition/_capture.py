@@ -217,6 +217,13 @@ def load_capture(
         mask_array = None
     else:
         mask_array = read_mask(mask, images.shape[1:3])
+    if mask_array is not None:  # before the frame check, which would call every frame dark
+        dark, outside = _dark_in_mask(images, mask_array)
+        if dark > _DARK_MASK_FRACTION:
+            logging.getLogger("jaxps").warning(
+                "load_capture: %.0f%% of the mask's pixels are dark in the mean frame, and "
+                "%.0f%% of the lit pixels lie outside it: is the mask inverted (the object "
+                "black), or another capture's?", 100 * dark, 100 * outside)
 
     if isinstance(intensity_mask, np.ndarray):
         if intensity_mask.shape != images.shape[1:3]:
@@ -289,7 +296,7 @@ def load_capture(
                            out=aligned_empty(images.shape, np.float32))
     light_check = None
     if light_array is not None:
-        light_check = check_lights(images, light_array, mask_array)
+        light_check = check_lights(images, light_array, mask=mask_array)
         if light_check.flagged:
             logging.getLogger("jaxps").warning("load_capture: %s", light_check.summary())
     return Capture(aligned(images, np.float32), light_array, mask_array,
@@ -448,6 +455,23 @@ def _below_ambient(images, ambient):
     axes = tuple(range(1, frames.ndim))
     tau = max(0.1 * float(np.median(frames.mean(axis=axes))), 0.02)
     return np.mean(frames < amb[None] - tau, axis=axes), tau
+
+
+# A given mask with more of its pixels dark than this gets a warning (`_dark_in_mask`).
+_DARK_MASK_FRACTION = 0.5
+
+
+def _dark_in_mask(images, mask):
+    """`(dark, lit_outside)`: the fraction of `mask`'s pixels that are dark in the mean frame
+    (below `mask_from_intensity`'s level, 5% of its 99th percentile), and the fraction of the
+    lit pixels outside `mask`, on every 4th row and column. An inverted mask (the object black)
+    on a dark background has both near 1 (docs/acquisition.md, the mask row)."""
+    mean = images[:, ::4, ::4].mean(axis=0)
+    mean = mean.mean(axis=-1) if mean.ndim == 3 else mean
+    inside = mask[::4, ::4]
+    lit = mean > 0.05 * np.percentile(mean, 99)
+    dark = 1 - float(lit[inside].mean()) if inside.any() else 0.0
+    return dark, float((lit & ~inside).sum() / max(lit.sum(), 1))
 
 
 def _folder_ambient(folder, ambient):

@@ -87,8 +87,8 @@ class LightCheck(NamedTuple):
 def check_lights(
     images: Float[ArrayLike, "K H W *C"],
     lights: Float[ArrayLike, "K 3"],
-    mask: Bool[ArrayLike, "H W"] | None = None,
     *,
+    mask: Bool[ArrayLike, "H W"] | None = None,
     max_zenith_deg: float = 50.0,
 ) -> LightCheck:
     """Check that `lights` are in the frames' axis convention, from the shape they give.
