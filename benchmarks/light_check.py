@@ -52,7 +52,9 @@ WRONG = {
 def _figures(images, lights, mask=None, max_zenith_deg=50.0):
     c = jaxps.check_lights(images, lights, mask=mask, max_zenith_deg=max_zenith_deg)
     return {"curl": round(c.curl, 4), "convexity": round(c.convexity, 4), "mirrored": c.mirrored,
-            "hollow": c.hollow, "loops": c.loops, "block": c.block, "unchecked": c.unchecked}
+            "reordered": c.reordered, "best_order": c.best_order,
+            "best_curl": round(c.best_curl, 4), "hollow": c.hollow, "loops": c.loops,
+            "block": c.block, "unchecked": c.unchecked}
 
 
 def yale(data, random_sets):
@@ -94,22 +96,32 @@ def _random_sets(capture, zenith, count, rng):
             continue
     curl = np.array([r["curl"] for r in sets])
     convexity = np.array([r["convexity"] for r in sets])
+    gap = curl - np.array([r["best_curl"] for r in sets])
     return {"lights_to_pick_from": len(near), "sets": len(sets),
             "not_measured": int(np.isnan(curl).sum()), "curl_max": float(np.nanmax(curl)),
             "curl_median": float(np.nanmedian(curl)),
             "convexity_max": float(np.nanmax(convexity)),
-            "flagged": sum(r["mirrored"] or r["hollow"] for r in sets),
+            "order_gap_max": float(np.nanmax(gap)),
+            "flagged": sum(r["mirrored"] or r["reordered"] or r["hollow"] for r in sets),
             "unchecked": sum(bool(r["unchecked"]) for r in sets)}
 
 
 def psm(data):
     lights = jaxps.load_lights(data / "psm" / "lights.txt")
+    # A lights file listed in the order of the frame names sorted as text (cat.0, cat.1,
+    # cat.10, cat.11, cat.2, ...), for frames read in natural order.
+    text = sorted(range(len(lights)), key=lambda k: f"cat.{k}.png")
     out = {}
     for obj in ("cat", "owl"):
         images, mask = jaxps.load_psm(data / "psm" / obj)
         out[obj] = {"given": _figures(images, lights, mask > 0.5),
                     "y negated": _figures(images, lights * [1, -1, 1], mask > 0.5),
-                    "180 degrees": _figures(images, lights * [-1, -1, 1], mask > 0.5)}
+                    "180 degrees": _figures(images, lights * [-1, -1, 1], mask > 0.5),
+                    "names sorted as text": _figures(images, lights[text], mask > 0.5),
+                    "lamps 0 and 6 swapped (12 deg apart)": _figures(
+                        images, lights[[6, 1, 2, 3, 4, 5, 0, 7, 8, 9, 10, 11]], mask > 0.5),
+                    "lamps 0 and 4 swapped (43 deg apart)": _figures(
+                        images, lights[[4, 1, 2, 3, 0, 5, 6, 7, 8, 9, 10, 11]], mask > 0.5)}
     return out
 
 
@@ -149,11 +161,15 @@ def timing(repeats=7):
 def leave_one_out(yaleb):
     """Each subject held out: the thresholds midway between the other four's figures with the
     lights as given (the cross and the random sets within 50 degrees) and wrong (mirrored:
-    y negated, x negated, left and right swapped; turned by 180 degrees), and whether they
-    tell the held-out subject's right lights from its wrong ones."""
+    y negated, x negated, left and right swapped; turned by 180 degrees; for the order
+    margin, the quarter turn and the left-right swap), and whether they tell the held-out
+    subject's right lights from its wrong ones."""
     def figures(row):
         random = row["random five within 50 deg, given"]
-        return {"curl_right": max(row["given"]["curl"], random["curl_max"]),
+        gap = lambda r: r["curl"] - r["best_curl"]
+        return {"gap_right": max(gap(row["given"]), random["order_gap_max"]),
+                "gap_wrong": min(gap(row[k]) for k in ("quarter turn", "left and right swapped")),
+                "curl_right": max(row["given"]["curl"], random["curl_max"]),
                 "curl_mirrored": min(row[k]["curl"] for k in
                                      ("y negated", "x negated", "left and right swapped")),
                 "convexity_right": max(row["given"]["convexity"], random["convexity_max"]),
@@ -165,9 +181,13 @@ def leave_one_out(yaleb):
         curl = 0.5 * (max(v["curl_right"] for v in rest) + min(v["curl_mirrored"] for v in rest))
         conv = 0.5 * (max(v["convexity_right"] for v in rest)
                       + min(v["convexity_turned"] for v in rest))
+        gap = 0.5 * (max(v["gap_right"] for v in rest) + min(v["gap_wrong"] for v in rest))
         out[held] = {"curl_threshold": round(curl, 3), "convexity_threshold": round(conv, 3),
-                     "right_passes": f["curl_right"] <= curl and f["convexity_right"] <= conv,
-                     "wrong_flagged": f["curl_mirrored"] > curl and f["convexity_turned"] > conv}
+                     "order_margin": round(gap, 3),
+                     "right_passes": (f["curl_right"] <= curl and f["convexity_right"] <= conv
+                                      and f["gap_right"] <= gap),
+                     "wrong_flagged": (f["curl_mirrored"] > curl and f["convexity_turned"] > conv
+                                       and f["gap_wrong"] > gap)}
     return out
 
 
@@ -187,15 +207,18 @@ def main():
         for name, row in result[group].items():
             cells = [f"{k} {v['curl']:.2f}/{v['convexity']:+.2f}"
                      f"{' M' if v.get('mirrored') else ''}{' H' if v.get('hollow') else ''}"
+                     f"{' R ' + str(v['best_order']) + ' ' + format(v['best_curl'], '.2f') if v.get('reordered') else ''}"
                      for k, v in row.items() if "curl" in v]
             extra = [f"{k}: curl max {v['curl_max']:.2f}, median {v['curl_median']:.2f}, "
-                     f"convexity max {v['convexity_max']:+.2f}; {v['flagged']} of {v['sets']} "
+                     f"convexity max {v['convexity_max']:+.2f}, order gap max "
+                     f"{v['order_gap_max']:.2f}; {v['flagged']} of {v['sets']} "
                      f"flagged, {v['not_measured']} not measured"
                      for k, v in row.items() if "curl_max" in v]
             print(f"{name}: " + "; ".join(cells + extra))
     for held, r in result["leave_one_subject_out"].items():
         print(f"{held} held out: curl threshold {r['curl_threshold']:.2f}, convexity "
-              f"{r['convexity_threshold']:+.2f} from the others; its right lights pass: "
+              f"{r['convexity_threshold']:+.2f}, order margin {r['order_margin']:.2f} from the "
+              f"others; its right lights pass: "
               f"{r['right_passes']}, its wrong ones flagged: {r['wrong_flagged']}")
     print("check_lights: " + ", ".join(f"{k} {1e3 * v:.1f} ms"
                                        for k, v in result["seconds"].items()))

@@ -336,7 +336,9 @@ def _light_check(cap) -> dict | None:
         return None
     rounded = lambda v: None if not np.isfinite(v) else round(float(v), 4)
     return {"curl": rounded(c.curl), "convexity": rounded(c.convexity),
-            "mirrored": bool(c.mirrored), "hollow": bool(c.hollow), "summary": c.summary()}
+            "mirrored": bool(c.mirrored), "reordered": bool(c.reordered),
+            "best_order": None if c.best_order is None else list(c.best_order),
+            "hollow": bool(c.hollow), "summary": c.summary()}
 
 
 def run(args) -> int:
@@ -407,7 +409,8 @@ def reconstruct_many(
     lamps, the same for every capture, as for `reconstruct` (each capture is then solved by
     `near_photometric_stereo`; the rows gain `near_steps` and `near_converged`).
     `method`, `shadow_threshold`: as for `reconstruct`. The `lights` column gives
-    `load_capture`'s `check_lights` verdict: `ok`, `mirrored?`, `hollow?` or `unchecked`.
+    `load_capture`'s `check_lights` verdict: `ok`, `mirrored?`, `reordered?`, `hollow?` or
+    `unchecked`.
 
     **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
     `summary_table(rows)` formats the rows.
@@ -436,8 +439,9 @@ def reconstruct_many(
             if cap.lights is None:
                 raise ValueError("no lights (give lights= or yale_names=True)")
             c = cap.light_check
-            row["lights"] = ("mirrored?" if c.mirrored else "hollow?" if c.hollow
-                             else "unchecked" if c.unchecked else "ok")
+            row["lights"] = ("mirrored?" if c.mirrored else "reordered?" if c.reordered
+                             else "hollow?" if c.hollow else "unchecked" if c.unchecked
+                             else "ok")
             if positions is not None:  # load_capture has matched the frames to the lamps
                 centre = _frame_centre(cap)
                 if load_options.get("intensity_mask") is None:

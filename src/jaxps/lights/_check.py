@@ -1,4 +1,5 @@
-"""Do the lights fit the frames? A check of a lights file's axes against the normals it gives.
+"""Do the lights fit the frames? A check of a lights file's axes and order against the normals
+it gives.
 
 A lights file in another axis convention (y measured down the image rows, an azimuth of the
 other sign) or with mirror-image lamps swapped gives normals that fit the frames exactly as
@@ -8,11 +9,14 @@ mirrors the gradients, $(p, q) \\to (-p, q)$ or $(p, -q)$, and an integrable fie
 derivative. So the share of curl in the gradients' derivatives tells the convention apart, with
 no model of the object. Turning the lights by 180 degrees gives $(-p, -q)$, integrable again:
 the same object, hollow. Its sign of curvature tells that one apart, for objects that bulge
-toward the camera, as faces do.
+toward the camera, as faces do. A lights file in another order than the frames (a quarter turn
+of a scanner's lamps, frames sorted another way) is found by trying the other orders: one
+whose curl is far lower is the frames' order.
 """
 
 from __future__ import annotations
 
+import itertools
 from typing import NamedTuple
 
 import numpy as np
@@ -29,10 +33,15 @@ _CELLS_ACROSS = 48
 _MIN_LOOPS = 50
 # `curl` above which the lights are called mirrored (mirrored, they would give below 0.65):
 # between the lights as given and mirrored on real captures (`benchmarks/light_check.py`,
-# docs/robust.md "A lights file in the wrong convention").
+# docs/robust.md "A lights file in the wrong convention or order").
 MIRRORED_CURL = 1.35
 # `convexity` above which the surface is called hollow.
 HOLLOW_CONVEXITY = 0.1
+# How much lower than the lights' own curl another order's must be to be called the frames'.
+REORDER_MARGIN = 0.4
+# Up to this many lights every order is tried; above, each swap of two, each cyclic shift,
+# the reversal, and the order of frame numbers sorted as text (1, 10, 11, 2, ...) both ways.
+_ALL_ORDERS = 6
 
 
 class LightCheck(NamedTuple):
@@ -46,8 +55,15 @@ class LightCheck(NamedTuple):
       that bulges toward the camera, positive for a hollow one. NaN as `curl`.
     - `mirrored`: `curl` > `MIRRORED_CURL` = 1.35: the lights mirrored in x or y fit the
       frames' shape better (a wrong sign of one axis, or mirror-image lamps swapped).
-    - `hollow`: `convexity` > 0.1 and not `mirrored`: the surface is hollow; for a face, the
-      lights are turned by 180 degrees (x and y both negated).
+    - `reordered`: another order of the lights, `best_order`, gives a curl lower by more than
+      `REORDER_MARGIN` = 0.4 (and, when `mirrored`, as low as mirroring back would): the
+      lights file lists the lamps in another order than the frames.
+    - `best_order`: with `reordered`, the order: `lights[best_order]` fits the frames (frame
+      k takes line `best_order[k]`); else None. Orders with the same curl (within 0.02) are
+      told apart by the most negative convexity.
+    - `best_curl`: the lowest curl over the orders tried (NaN without a verdict).
+    - `hollow`: `convexity` > 0.1, and neither `mirrored` nor `reordered`: the surface is
+      hollow; for a face, the lights are turned by 180 degrees (x and y both negated).
     - `loops`: the number of 2x2 loops of cells measured.
     - `block`: the side in pixels of the cells the frames were averaged over.
     - `unchecked`: why there is no verdict (`curl` NaN), or "" when there is one.
@@ -60,10 +76,13 @@ class LightCheck(NamedTuple):
     loops: int
     block: int
     unchecked: str = ""
+    reordered: bool = False
+    best_order: tuple[int, ...] | None = None
+    best_curl: float = float("nan")
 
     @property
     def flagged(self) -> bool:
-        return self.mirrored or self.hollow
+        return self.mirrored or self.reordered or self.hollow
 
     def summary(self) -> str:
         """One paragraph for a person: what was measured and, when flagged, what to check."""
@@ -77,7 +96,12 @@ class LightCheck(NamedTuple):
                      "has x right, y UP (not down the image rows), z toward the viewer; check the "
                      "sign of each axis, of the azimuths, and that left and right (or upper and "
                      "lower) lamps are not swapped")
-        elif self.hollow:
+        if self.reordered:
+            said += (f". The frames fit the lights in the order {list(self.best_order)} (frame k "
+                     f"takes line best_order[k] of the lights) far better: curl "
+                     f"{self.best_curl:.2f}. Are the lights listed in another order than the "
+                     "frames (a turn of the lamps, or frames sorted another way)?")
+        elif self.hollow and not self.mirrored:
             said += (". The surface is hollow: if it should bulge toward the camera (a face "
                      "does), the lights are turned by 180 degrees (x and y both negated, or "
                      "opposite lamps swapped)")
@@ -91,20 +115,27 @@ def check_lights(
     mask: Bool[ArrayLike, "H W"] | None = None,
     max_zenith_deg: float = 50.0,
 ) -> LightCheck:
-    """Check that `lights` are in the frames' axis convention, from the shape they give.
+    """Check that `lights` are in the frames' axis convention and order, from the shape they
+    give.
 
     Each frame (grey: the channel mean) is averaged over square blocks, about 48 across the lit
     part of `mask`, and the normals are solved by least squares; blocks whose normal leans more
     than 78 degrees from the view axis are left out. Over every 2x2 loop of blocks left, the
     gradients $p = -n_x/n_z$, $q = -n_y/n_z$ give `curl` and `convexity` (see `LightCheck`).
 
+    The same is measured for the lights in other orders (every order up to 6 lights; above,
+    each swap of two, each cyclic shift, the reversal and the order of names sorted as text),
+    to find `best_order`.
+
     On the shared Yale B faces' five scanner frames, the lights as given gave curl 0.36-0.45
     and mirrored 1.55-1.64; 200 random sets of five of each face's lights within 50 degrees
-    at most 1.03; psm's cat and owl 0.33 and 0.47 (mirrored 1.67, 1.53). Turned by 180
-    degrees, the faces' convexity went from -0.15..-0.21 to +0.15..+0.21. A quarter turn of the
-    scanner's four outer lamps gave 1.16-1.22 and is not flagged; a swap of the centre lamp
-    with an outer one changes neither figure much (`benchmarks/light_check.py`, docs/robust.md
-    "A lights file in the wrong convention").
+    at most 1.03, and no other order of them did better by more than 0.23; psm's cat and owl
+    0.33 and 0.47 (mirrored 1.67, 1.53). Turned by 180 degrees, the faces' convexity went
+    from -0.15..-0.21 to +0.15..+0.21. A quarter turn of the scanner's four outer lamps gave
+    1.16-1.22, and its best order the right lights. Not seen: a swap of the centre lamp with
+    an outer one (0.51-0.68), or of two of psm's lamps 12 degrees apart
+    (`benchmarks/light_check.py`, docs/robust.md "A lights file in the wrong convention or
+    order").
 
     **Arguments:**
     - `images`: `(K, H, W)` or `(K, H, W, C)` frames, ambient subtracted, intensities
@@ -150,24 +181,60 @@ def check_lights(
     g = _blocks(grey, f)
     lit = mask & (grey.mean(axis=0) > level)
     keep = _blocks(lit[None].astype(np.float32), f)[0] == 1
-    b = np.einsum("ck,khw->chw", np.linalg.pinv(lights), g)
-    keep &= b[2] > 0.2 * np.linalg.norm(b, axis=0)  # |p|, |q| <= 4.9: no edge dominates
-    nz = np.where(keep, b[2], 1)
-    p, q = np.where(keep, -b[0] / nz, 0), np.where(keep, -b[1] / nz, 0)
+    orders = _orders(len(lights))  # the lights as given first
+    curl, convexity, loops = _shape(g, keep, lights[orders])
+    if loops[0] < _MIN_LOOPS:
+        return _unchecked(int(loops[0]), f, f"{loops[0]} loops of {f}-pixel cells lit and "
+                                            f"facing the camera, need {_MIN_LOOPS}")
+    tried = np.where(loops >= _MIN_LOOPS, curl, np.inf)
+    ties = np.flatnonzero(tried <= tried.min() + 0.02)
+    best = ties[np.argmin(convexity[ties])]  # of equal curls, the bulging one
+    mirrored = bool(curl[0] > MIRRORED_CURL)
+    # Mirrored lights are only also reordered when an order undoes the mirror as well as
+    # mirroring them back would (a scanner's cross: swapping left and right is a mirror).
+    reordered = bool(tried[best] < curl[0] - REORDER_MARGIN
+                     and (not mirrored or tried[best] <= 2 - curl[0] + 0.02))
+    return LightCheck(float(curl[0]), float(convexity[0]), mirrored,
+                      bool(not (mirrored or reordered) and convexity[0] > HOLLOW_CONVEXITY),
+                      int(loops[0]), f, "", reordered,
+                      tuple(int(i) for i in orders[best]) if reordered else None,
+                      float(tried[best]))
+
+
+def _orders(k):
+    """`(P, k)` orders of k lights to try, the identity first: every order up to
+    `_ALL_ORDERS` lights; above, each swap of two, each cyclic shift, the reversal, and the
+    order of the numbers 0..k-1 sorted as text and its inverse."""
+    if k <= _ALL_ORDERS:
+        return np.array(list(itertools.permutations(range(k))))
+    same = np.arange(k)
+    swaps = []
+    for i, j in itertools.combinations(range(k), 2):
+        swaps.append(same.copy())
+        swaps[-1][[i, j]] = [j, i]
+    text = np.array(sorted(range(k), key=str))
+    return np.array([same, *swaps, *(np.roll(same, s) for s in range(1, k)), same[::-1],
+                     text, np.argsort(text)])
+
+
+def _shape(g, keep, lights):
+    """`(curl, convexity, loops)`, each `(P,)`: the least-squares normals of the `(K, h, w)`
+    blocks `g` under each of the `(P, K, 3)` light sets, measured over the 2x2 loops of `keep`
+    blocks whose normal leans less than 78 degrees from the view axis."""
+    b = np.einsum("pck,khw->pchw", np.linalg.pinv(lights).astype(np.float32),
+                  g.astype(np.float32))
+    keep = keep & (b[:, 2] > 0.2 * np.linalg.norm(b, axis=1))  # |p|, |q| <= 4.9
+    nz = np.where(keep, b[:, 2], 1)
+    p, q = np.where(keep, -b[:, 0] / nz, 0), np.where(keep, -b[:, 1] / nz, 0)
     # Derivatives at the centre of each 2x2 loop; y is up, so a row down is -1 in y.
-    dx = lambda a: 0.5 * (a[1:, 1:] - a[1:, :-1] + a[:-1, 1:] - a[:-1, :-1])
-    dy = lambda a: -0.5 * (a[1:, 1:] - a[:-1, 1:] + a[1:, :-1] - a[:-1, :-1])
-    loop = keep[1:, 1:] & keep[:-1, 1:] & keep[1:, :-1] & keep[:-1, :-1]
-    loops = int(loop.sum())
-    if loops < _MIN_LOOPS:
-        return _unchecked(loops, f, f"{loops} loops of {f}-pixel cells lit and facing the "
-                                    f"camera, need {_MIN_LOOPS}")
-    py, qx, px, qy = dy(p)[loop], dx(q)[loop], dx(p)[loop], dy(q)[loop]
-    curl = float(np.sum((py - qx) ** 2) / max(np.sum(py ** 2 + qx ** 2), 1e-30))
-    convexity = float(np.sum(px + qy) / max(np.sum(np.abs(px) + np.abs(qy)), 1e-30))
-    mirrored = curl > MIRRORED_CURL
-    return LightCheck(curl, convexity, mirrored, not mirrored and convexity > HOLLOW_CONVEXITY,
-                      loops, f)
+    dx = lambda a: 0.5 * (a[:, 1:, 1:] - a[:, 1:, :-1] + a[:, :-1, 1:] - a[:, :-1, :-1])
+    dy = lambda a: -0.5 * (a[:, 1:, 1:] - a[:, :-1, 1:] + a[:, 1:, :-1] - a[:, :-1, :-1])
+    loop = keep[:, 1:, 1:] & keep[:, :-1, 1:] & keep[:, 1:, :-1] & keep[:, :-1, :-1]
+    total = lambda a: np.where(loop, a, 0).sum(axis=(1, 2))
+    py, qx, px, qy = dy(p), dx(q), dx(p), dy(q)
+    curl = total((py - qx) ** 2) / np.maximum(total(py ** 2 + qx ** 2), 1e-30)
+    convexity = total(px + qy) / np.maximum(total(np.abs(px) + np.abs(qy)), 1e-30)
+    return curl, convexity, loop.sum(axis=(1, 2))
 
 
 def _unchecked(loops, block, why):
