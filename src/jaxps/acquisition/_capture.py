@@ -62,7 +62,8 @@ class Capture(NamedTuple):
     - `frame_size`: `(height, width)` of the frames as read, before any crop (the frame that
       `crop` is a box of, and in which near lamps' positions are measured).
     - `light_check`: `jaxps.check_lights` of the frames, lights and mask as returned (is the
-      lights file mirrored, or turned by 180 degrees?), or None without lights.
+      lights file mirrored, in another order than the frames, or turned by 180 degrees?), or
+      None without lights.
     """
 
     images: np.ndarray

@@ -3,7 +3,8 @@
 Takes Yale B angles, `lights.txt` files (`load_lights`, `save_lights`), frames of a chrome
 sphere, or near point-light positions with a surface; gives `(K, 3)` directions, or
 `(K, H, W, 3)` per-pixel directions and `(K, H, W)` fall-off for near lights, checked to span
-3-D; `check_lights` checks a lights file's axes against the shape its frames give.
+3-D; `check_lights` checks a lights file's axes and order against the shape its frames
+give.
 """
 
 from ._check import LightCheck, check_lights

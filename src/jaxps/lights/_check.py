@@ -72,13 +72,13 @@ class LightCheck(NamedTuple):
     curl: float
     convexity: float
     mirrored: bool
+    reordered: bool
+    best_order: tuple[int, ...] | None
+    best_curl: float
     hollow: bool
     loops: int
     block: int
-    unchecked: str = ""
-    reordered: bool = False
-    best_order: tuple[int, ...] | None = None
-    best_curl: float = float("nan")
+    unchecked: str
 
     @property
     def flagged(self) -> bool:
@@ -101,7 +101,7 @@ class LightCheck(NamedTuple):
                      f"takes line best_order[k] of the lights) far better: curl "
                      f"{self.best_curl:.2f}. Are the lights listed in another order than the "
                      "frames (a turn of the lamps, or frames sorted another way)?")
-        elif self.hollow and not self.mirrored:
+        elif self.hollow:
             said += (". The surface is hollow: if it should bulge toward the camera (a face "
                      "does), the lights are turned by 180 degrees (x and y both negated, or "
                      "opposite lamps swapped)")
@@ -194,11 +194,13 @@ def check_lights(
     # mirroring them back would (a scanner's cross: swapping left and right is a mirror).
     reordered = bool(tried[best] < curl[0] - REORDER_MARGIN
                      and (not mirrored or tried[best] <= 2 - curl[0] + 0.02))
-    return LightCheck(float(curl[0]), float(convexity[0]), mirrored,
-                      bool(not (mirrored or reordered) and convexity[0] > HOLLOW_CONVEXITY),
-                      int(loops[0]), f, "", reordered,
-                      tuple(int(i) for i in orders[best]) if reordered else None,
-                      float(tried[best]))
+    return LightCheck(
+        curl=float(curl[0]), convexity=float(convexity[0]), mirrored=mirrored,
+        reordered=reordered,
+        best_order=tuple(int(i) for i in orders[best]) if reordered else None,
+        best_curl=float(tried[best]),
+        hollow=bool(not (mirrored or reordered) and convexity[0] > HOLLOW_CONVEXITY),
+        loops=int(loops[0]), block=f, unchecked="")
 
 
 def _orders(k):
@@ -238,7 +240,9 @@ def _shape(g, keep, lights):
 
 
 def _unchecked(loops, block, why):
-    return LightCheck(np.nan, np.nan, False, False, loops, block, why)
+    return LightCheck(curl=np.nan, convexity=np.nan, mirrored=False, reordered=False,
+                      best_order=None, best_curl=np.nan, hollow=False, loops=loops,
+                      block=block, unchecked=why)
 
 
 def _blocks(stack, f):
