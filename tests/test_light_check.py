@@ -181,7 +181,7 @@ def test_psm_lights_mirrored_or_in_another_order(data):
             np.testing.assert_allclose(wrong[list(c.best_order)], lights, atol=1e-6)
 
 
-def test_reconstruct_reports_the_check_and_warns(tmp_path, caplog):
+def test_reconstruct_reports_the_check_and_warns(tmp_path, caplog, capsys):
     """`jaxps reconstruct` with a lights file whose y points down the image rows."""
     lights = np.asarray(synthetic.scanner_lights(20.0), np.float64)
     images = np.asarray(synthetic.render_scene(synthetic.face_like(96), lights, noise=0.005,
@@ -194,16 +194,22 @@ def test_reconstruct_reports_the_check_and_warns(tmp_path, caplog):
     for name, given in (("right", lights), ("y down", lights * [1, -1, 1])):
         jaxps.save_lights(tmp_path / f"{name}.txt", given)
         caplog.clear()
+        capsys.readouterr()
         with caplog.at_level(logging.WARNING, logger="jaxps"):
             assert main(["reconstruct", *paths, "--lights", str(tmp_path / f"{name}.txt"),
                          "--out", str(tmp_path / name)]) == 0
         outputs[name] = (json.loads((tmp_path / name / "summary.json").read_text()),
-                         caplog.text)
-    right, log = outputs["right"]
+                         caplog.text, capsys.readouterr())
+    right, log, printed = outputs["right"]
     assert right["light_check"]["mirrored"] is False and right["light_check"]["curl"] < 0.2
     assert right["light_check"]["reordered"] is False and right["light_check"]["best_order"] is None
-    assert "mirrored" not in log
-    wrong, log = outputs["y down"]
+    assert "mirrored" not in log and "lights" not in printed.out
+    wrong, log, printed = outputs["y down"]
+    assert "reconstruct: the lights do not fit the frames' shape (mirrored; in another " \
+           "order, best [0, 1, 2, 4, 3])" in printed.out
+    # The warning has a line of its own on stderr, not the tail of a progress bar's line.
+    lines = [line.split("\r")[-1] for line in printed.err.split("\n")]
+    assert any(line.startswith("load_capture: lights: curl 1.9") for line in lines), lines
     assert wrong["light_check"]["mirrored"] is True
     assert wrong["light_check"]["curl"] == pytest.approx(2 - right["light_check"]["curl"],
                                                          abs=1e-3)

@@ -6,6 +6,7 @@ import argparse
 import gc
 import importlib
 import importlib.metadata
+import logging
 import sys
 
 from . import _args
@@ -47,10 +48,33 @@ def console() -> int:
     return _run(None, freeze=True)
 
 
+class _BarSafeHandler(logging.Handler):
+    """Writes the `jaxps` logger's warnings on lines of their own: a stage's progress bar is
+    cleared first and drawn again after (`tqdm.write`), where Python's fallback handler wrote
+    them into the bar's line."""
+
+    def emit(self, record):
+        from tqdm import tqdm
+
+        try:
+            tqdm.write(self.format(record), file=sys.stderr)
+        except Exception:  # noqa: BLE001  logging must not stop the command
+            self.handleError(record)
+
+
+def _log_above_bars():
+    logger = logging.getLogger("jaxps")
+    if not any(isinstance(h, _BarSafeHandler) for h in logger.handlers):
+        handler = _BarSafeHandler(logging.WARNING)
+        handler.setFormatter(logging.Formatter("%(message)s"))
+        logger.addHandler(handler)
+
+
 def _run(argv, freeze):
     parser = build_parser()
     args = parser.parse_args(argv)
     enable_compilation_cache()
+    _log_above_bars()
     try:
         command = importlib.import_module(f"{__package__}.{args.module}")
         if freeze:

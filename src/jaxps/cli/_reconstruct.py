@@ -341,6 +341,21 @@ def _light_check(cap) -> dict | None:
             "hollow": bool(c.hollow), "summary": c.summary()}
 
 
+def _light_line(check: dict | None) -> str | None:
+    """One line for the end of a command's output when `check_lights` flagged the lights."""
+    if not check or not (check["mirrored"] or check["reordered"] or check["hollow"]):
+        return None
+    said = []
+    if check["mirrored"]:
+        said.append("mirrored")
+    if check["reordered"]:
+        said.append(f"in another order, best {check['best_order']}")
+    if check["hollow"]:
+        said.append("turned by 180 degrees: the surface is hollow")
+    return (f"the lights do not fit the frames' shape ({'; '.join(said)}): see the warning "
+            "above and \"light_check\" in summary.json")
+
+
 def run(args) -> int:
     if len(args.frames) > 1 and all(os.path.isdir(f) for f in args.frames):
         return _run_many(args)
@@ -362,6 +377,8 @@ def run(args) -> int:
         print(f"reconstruct: frames moved up to {largest:.2f} px; registered")
     if "target" in summary["intensities"]:
         print("reconstruct: " + _card_line(summary["intensities"]))
+    if _light_line(summary["light_check"]):
+        print("reconstruct: " + _light_line(summary["light_check"]))
     counts = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
     size = summary["size"]
     print(f"reconstructed {size['frames']} frames of {size['height']}x{size['width']} "

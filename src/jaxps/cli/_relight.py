@@ -23,6 +23,7 @@ from ._reconstruct import (
     _card_line,
     _intensities,
     _light_check,
+    _light_line,
     _motion,
     _near_capture,
     _near_summary,
@@ -221,6 +222,8 @@ def run(args) -> int:
         print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
     if "target" in s["intensities"]:
         print("relight: " + _card_line(s["intensities"]))
+    if _light_line(s["light_check"]):
+        print("relight: " + _light_line(s["light_check"]))
     fit = s["fit"]
     print(f"relight: {args.method} on {len(s['frames'])} frames, {s['mask_pixels']} pixels: "
           f"training RMSE {fit['rmse']:.4g} (x255 = {s['fit_rmse_gray_8bit']:.2f}), "
