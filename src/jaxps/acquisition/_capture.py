@@ -25,7 +25,7 @@ from ._face import bucket_box, crop, detect_face
 from ._files import FRAME_EXTENSIONS, PathLike, list_frames, load_stack, read_image, read_mask
 from ._quality import screen_capture
 from ._register import _shift, estimate_shifts
-from ._stack import _subtract_ambient, mask_from_intensity
+from ._stack import _lit_level, _subtract_ambient, mask_from_intensity
 
 __all__ = ["Capture", "load_capture", "target_ratios"]
 
@@ -464,13 +464,13 @@ _DARK_MASK_FRACTION = 0.5
 
 def _dark_in_mask(images, mask):
     """`(dark, lit_outside)`: the fraction of `mask`'s pixels that are dark in the mean frame
-    (below `mask_from_intensity`'s level, 5% of its 99th percentile), and the fraction of the
+    (below `mask_from_intensity`'s level, `_lit_level`), and the fraction of the
     lit pixels outside `mask`, on every 4th row and column. An inverted mask (the object black)
     on a dark background has both near 1 (docs/acquisition.md, the mask row)."""
     mean = images[:, ::4, ::4].mean(axis=0)
     mean = mean.mean(axis=-1) if mean.ndim == 3 else mean
     inside = mask[::4, ::4]
-    lit = mean > 0.05 * np.percentile(mean, 99)
+    lit = mean > _lit_level(mean)
     dark = 1 - float(lit[inside].mean()) if inside.any() else 0.0
     return dark, float((lit & ~inside).sum() / max(lit.sum(), 1))
 

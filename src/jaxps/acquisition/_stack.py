@@ -49,6 +49,11 @@ def equalize_mean(
     return (images * gains.reshape(shape)).astype(images.dtype), gains
 
 
+def _lit_level(mean) -> float:
+    """`mask_from_intensity`'s default level: 5% of the mean image's 99th percentile."""
+    return 0.05 * float(np.percentile(mean, 99))
+
+
 def mask_from_intensity(
     images: Float[np.ndarray, "K H W *C"], *, threshold: float | str | None = None
 ) -> Bool[np.ndarray, "H W"]:
@@ -71,7 +76,7 @@ def mask_from_intensity(
     if np.ptp(mean) == 0:
         raise ValueError("images are constant: cannot derive a mask from intensity")
     if threshold is None:
-        threshold = 0.05 * float(np.percentile(mean, 99))
+        threshold = _lit_level(mean)
     elif threshold == "otsu":
         from skimage import filters
 
