@@ -513,6 +513,36 @@ def test_cli_many_folders(tmp_path, capsys):
     assert not (tmp_path / "with_report").exists()
 
 
+def test_many_captures_drop_frames_before_the_intensities(tmp_path):
+    """A capture in `reconstruct_many` is solved as `load_capture` + `photometric_stereo`
+    solve it alone, also when a frame is dropped. Until the thirtieth session the many-capture
+    path dropped the frame only after the intensities were estimated with it: the albedo
+    differed by 0.10 (frontal) and the semi-calibrated normals by up to 5.5 degrees."""
+    import cv2
+
+    from jaxps.acquisition import load_capture
+
+    scene = face_scene(48)
+    frames = np.asarray(scene.images).copy()
+    frames[2, 1::2] = 0.0  # interlace-like combing
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(tmp_path / f"f{i}.pgm"), np.round(f * 255).astype(np.uint8))
+    lights = np.asarray(scene.lights)
+    for intensities in ("frontal", "semi_calibrated"):
+        (many,), (row,) = jaxps.reconstruct_many([tmp_path], lights=lights, progress=False,
+                                                 intensities=intensities)
+        cap = load_capture(tmp_path, lights=lights, intensities=intensities)
+        alone = jaxps.photometric_stereo(cap.images, cap.lights, mask=cap.mask,
+                                         sample_mask=~cap.saturated)
+        assert cap.dropped == ("f2.pgm",) and row["dropped"].startswith("f2.pgm (row/interlace")
+        assert row["frames"] == 5 and [f.name for f in cap.frame_check.flagged] == ["f2.pgm"]
+        ok = np.asarray(alone.status) == jaxps.Status.OK
+        np.testing.assert_allclose(np.asarray(many.albedo)[ok], np.asarray(alone.albedo)[ok],
+                                   atol=1e-5)
+        assert float(np.max(np.asarray(jaxps.angular_error(many.normals, alone.normals))[ok])) \
+            < 0.1
+
+
 def test_batch_sharded_over_two_host_devices():
     """The sharded path (several devices) equals single calls; two CPU devices are forced in a
     fresh interpreter, since the device count is fixed when JAX starts."""

@@ -113,6 +113,8 @@ ADDED = {
 # highlight); that entry rewritten.
 # Not from an issue: `Capture` gained `light_check` (`check_lights` of the capture as loaded);
 # that entry rewritten.
+# Not from an issue: `Capture` gained `frame_check` (`check_frames`' report on the frames as
+# given, so that `reconstruct_many` drops frames inside `load_capture`); that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

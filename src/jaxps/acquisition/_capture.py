@@ -23,7 +23,7 @@ from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ..ps._photometric_stereo import photometric_stereo
 from ._face import bucket_box, crop, detect_face
 from ._files import FRAME_EXTENSIONS, PathLike, list_frames, load_stack, read_image, read_mask
-from ._quality import screen_capture
+from ._quality import QualityReport, screen_capture
 from ._register import _shift, estimate_shifts
 from ._stack import _lit_level, _subtract_ambient, mask_from_intensity
 
@@ -64,6 +64,9 @@ class Capture(NamedTuple):
     - `light_check`: `jaxps.check_lights` of the frames, lights and mask as returned (is the
       lights file mirrored, in another order than the frames, or turned by 180 degrees?), or
       None without lights.
+    - `frame_check`: the `jaxps.check_frames` report on the frames as given (every frame,
+      the dropped ones with their reasons), or None with `check_quality=False` or frames too
+      small to check.
     """
 
     images: np.ndarray
@@ -81,6 +84,7 @@ class Capture(NamedTuple):
     intensity_fit: dict | None = None
     frame_size: tuple[int, int] | None = None
     light_check: LightCheck | None = None
+    frame_check: QualityReport | None = None
 
 
 def load_capture(
@@ -237,9 +241,9 @@ def load_capture(
     if target is not None and not target.any():
         raise ValueError("intensity_mask is empty: no pixel of the reference target")
 
-    given = names
+    given, frame_check = names, None
     if check_quality:  # inside the given mask: the frames are judged where they will be used
-        images, saturated, names, light_array, _ = screen_capture(
+        images, saturated, names, light_array, frame_check = screen_capture(
             images, saturated, names, light_array, mask=mask_array)
 
     method = intensities
@@ -303,7 +307,7 @@ def load_capture(
     return Capture(aligned(images, np.float32), light_array, mask_array,
                    saturated, names, box, (1 / e).astype(np.float32),
                    tuple(n for n in given if n not in names), e, method, shifts, border > 0,
-                   fit, tuple(int(v) for v in full_size), light_check)
+                   fit, tuple(int(v) for v in full_size), light_check, frame_check)
 
 
 def target_ratios(

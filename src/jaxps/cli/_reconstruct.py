@@ -12,7 +12,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..acquisition import check_frames, drop_flagged, list_frames, load_capture
+from ..acquisition import list_frames, load_capture
 from ..acquisition._capture import _kept
 from ..core import Status, status_counts
 from ..core._progress import Stages
@@ -419,8 +419,10 @@ def reconstruct_many(
 ) -> tuple[list[PSResult | None], list[dict]]:
     """Load, check and solve many capture folders, with one progress bar over the captures.
 
-    Each folder is loaded with `jaxps.acquisition.load_capture(folder, **load_options)`; with
-    `check_quality`, flagged frames are dropped (`drop_flagged`) and named in the summary. A
+    Each folder is loaded with `jaxps.acquisition.load_capture(folder, check_quality=...,
+    **load_options)`, so each capture is solved exactly as `reconstruct` solves it alone: with
+    `check_quality`, flagged frames are dropped before the intensities are estimated and the
+    frames registered, and named with their first reason in the `dropped` column. A
     capture that cannot be loaded or keeps fewer than 3 frames is reported (`error` column) and
     its result is None; nothing is skipped silently. `light_positions`, `pixel_size`: near
     lamps, the same for every capture, as for `reconstruct` (each capture is then solved by
@@ -451,26 +453,26 @@ def reconstruct_many(
             row.update(near_steps=0, near_converged=False)
         res = None
         try:
-            # the check below (not load_capture's) keeps the reasons for the table
-            cap = load_capture(folder, check_quality=False, **load_options)
+            # frames are checked and dropped inside load_capture, as for one capture, so that
+            # the intensities, the registration and the light check see only the kept frames
+            cap = load_capture(folder, check_quality=check_quality, **load_options)
             if cap.lights is None:
                 raise ValueError("no lights (give lights= or yale_names=True)")
             c = cap.light_check
             row["lights"] = ("mirrored?" if c.mirrored else "reordered?" if c.reordered
                              else "hollow?" if c.hollow else "unchecked" if c.unchecked
                              else "ok")
+            report = cap.frame_check
+            row["frames"] = len(cap.names) + len(cap.dropped)
+            if report is not None:
+                row["dropped"] = ", ".join(f"{f.name} ({f.reasons[0]})" for f in report.flagged)
             if positions is not None:  # load_capture has matched the frames to the lamps
+                kept = (np.arange(len(cap.names)) if report is None
+                        else np.flatnonzero(report.keep))
                 centre = _frame_centre(cap)
                 if load_options.get("intensity_mask") is None:
-                    cap = _near_intensities(cap, positions, pixel_size, centre)
+                    cap = _near_intensities(cap, positions[kept], pixel_size, centre)
             images, lights, sample_mask = cap.images, cap.lights, ~cap.saturated
-            kept = np.arange(len(images))
-            row["frames"] = len(cap.names)
-            if check_quality:
-                report = check_frames(images, names=list(cap.names), mask=cap.mask)
-                images, lights, kept = drop_flagged(images, lights, report)
-                sample_mask = sample_mask[kept]
-                row["dropped"] = ", ".join(f"{f.name} ({f.reasons[0]})" for f in report.flagged)
             if positions is None:
                 res = photometric_stereo(images, lights, mask=cap.mask, sample_mask=sample_mask,
                                          method=method, shadow_threshold=shadow_threshold)
