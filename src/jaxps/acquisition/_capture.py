@@ -222,13 +222,14 @@ def load_capture(
         mask_array = None
     else:
         mask_array = read_mask(mask, images.shape[1:3])
+    dark_mask = None  # the warning's words, also put before the frame check's error
     if mask_array is not None:  # before the frame check, which would call every frame dark
         dark, outside = _dark_in_mask(images, mask_array)
         if dark > _DARK_MASK_FRACTION:
-            logging.getLogger("jaxps").warning(
-                "load_capture: %.0f%% of the mask's pixels are dark in the mean frame, and "
-                "%.0f%% of the lit pixels lie outside it: is the mask inverted (the object "
-                "black), or another capture's?", 100 * dark, 100 * outside)
+            dark_mask = (f"{100 * dark:.0f}% of the mask's pixels are dark in the mean frame, "
+                         f"and {100 * outside:.0f}% of the lit pixels lie outside it: is the "
+                         "mask inverted (the object black), or another capture's?")
+            logging.getLogger("jaxps").warning("load_capture: %s", dark_mask)
 
     if isinstance(intensity_mask, np.ndarray):
         if intensity_mask.shape != images.shape[1:3]:
@@ -243,8 +244,14 @@ def load_capture(
 
     given, frame_check = names, None
     if check_quality:  # inside the given mask: the frames are judged where they will be used
-        images, saturated, names, light_array, frame_check = screen_capture(
-            images, saturated, names, light_array, mask=mask_array)
+        try:
+            images, saturated, names, light_array, frame_check = screen_capture(
+                images, saturated, names, light_array, mask=mask_array)
+        except ValueError as err:
+            if dark_mask is None:
+                raise
+            raise ValueError(f"mask: {dark_mask} The frames were checked inside it: {err}") \
+                from None
 
     method = intensities
     if light_array is None and method in ("frontal", "semi_calibrated"):
