@@ -5,9 +5,15 @@ as given, and with the lights file wrong in the ways an operator gets it wrong.
   --yale-names --ambient` loads them (`load_capture` defaults, no mask), with the lights as
   given; negated in y (image rows for y) and in x; the left and right lamps swapped; the
   four outer lamps turned by a quarter; turned by 180 degrees; the centre lamp swapped with
-  the right one.
+  the right one, and with the upper one; the right and upper lamps swapped; the centre lamp
+  listed last. And each set of four of the five with each two of its lamps swapped that are
+  not mirror images (the swap changes the span of the lights, so the residual can see it).
 - Each subject's `--random` sets of five of the 64 lights (mean-equalised frames, as read),
   with the lights as given: where the shadows of wide lights break the least-squares normals.
+  Within 50 degrees, also `--random` sets of four.
+- Leave one subject out: the curl, convexity and order thresholds, and the residual's slack
+  (`RESIDUAL_SLACK`: the four-light threshold midway, geometrically, between the largest
+  ratio as given and the smallest swapped, minus 1), each from the other four subjects.
 - psm's cat and owl, under its twelve lights, inside their masks.
 - Its time on the synthetic face's five frames, 192x168 and 1280x1024 (median of 7).
 - Away from the shared data: the synthetic face of `jaxps.synthetic.face_like` under the
@@ -19,6 +25,7 @@ as given, and with the lights file wrong in the ways an operator gets it wrong.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import pathlib
 import sys
@@ -46,14 +53,21 @@ WRONG = {
     "quarter turn": lambda l: l[[0, 3, 4, 2, 1]],
     "180 degrees": lambda l: l[[0, 2, 1, 4, 3]],
     "centre and one outer swapped": lambda l: l[[1, 0, 2, 3, 4]],
+    "centre and upper swapped": lambda l: l[[3, 1, 2, 0, 4]],
+    "right and upper swapped": lambda l: l[[0, 3, 2, 1, 4]],
+    "centre listed last": lambda l: l[[1, 2, 3, 4, 0]],
 }
+# The wrong orders above that change the span of the lights (not mirror images).
+SPAN_CHANGED = ("centre and one outer swapped", "centre and upper swapped",
+                "right and upper swapped", "centre listed last")
 
 
 def _figures(images, lights, mask=None, max_zenith_deg=50.0):
     c = jaxps.check_lights(images, lights, mask=mask, max_zenith_deg=max_zenith_deg)
     return {"curl": round(c.curl, 4), "convexity": round(c.convexity, 4), "mirrored": c.mirrored,
             "reordered": c.reordered, "best_order": c.best_order,
-            "best_curl": round(c.best_curl, 4), "hollow": c.hollow, "loops": c.loops,
+            "best_curl": round(c.best_curl, 4), "residual_ratio": round(c.residual_ratio, 3),
+            "hollow": c.hollow, "loops": c.loops,
             "block": c.block, "unchecked": c.unchecked}
 
 
@@ -72,23 +86,47 @@ def yale(data, random_sets):
         row = {"given": _figures(cap.images, lights, cap.mask)}
         for name, wrong in WRONG.items():
             row[name] = _figures(cap.images, wrong(lights), cap.mask)
+        row["four lamps, two swapped"] = _four_swapped(cap.images, lights, cap.mask)
         every = acq.load_capture(folder, yale_names=True, ambient=ambient, intensities="mean",
                                  register=False)
         for zenith in (180, 50):
             label = ("random five of 64" if zenith == 180 else
                      f"random five within {zenith} deg") + ", given"
             row[label] = _random_sets(every, zenith, random_sets, rng)
+        row["random four within 50 deg, given"] = _random_sets(every, 50, random_sets, rng, 4)
         out[s] = row
     return out
 
 
-def _random_sets(capture, zenith, count, rng):
-    """`count` random sets of five of `capture`'s lights within `zenith` degrees of the view
-    axis, as given: the largest curl and convexity, and how many sets were flagged."""
+def _four_swapped(images, lights, mask):
+    """Each set of four of the five cross frames, with each two of its lamps swapped whose
+    swap changes the span of the lights (mirror-image swaps are the curl's to see): the
+    smallest residual ratio and how many were called reordered."""
+    ratios, caught = [], 0
+    for sub in itertools.combinations(range(len(lights)), 4):
+        sub = list(sub)
+        span = lights[sub] @ np.linalg.pinv(lights[sub])
+        for i, j in itertools.combinations(range(4), 2):
+            order = np.arange(4)
+            order[[i, j]] = [j, i]
+            wrong = lights[sub][order]
+            if np.allclose(wrong @ np.linalg.pinv(wrong), span, atol=1e-6):
+                continue
+            c = jaxps.check_lights(images[sub], wrong, mask=mask)
+            ratios.append(c.residual_ratio)
+            caught += c.reordered
+    return {"swaps": len(ratios), "residual_ratio_min": float(min(ratios)),
+            "reordered": caught}
+
+
+def _random_sets(capture, zenith, count, rng, k=5):
+    """`count` random sets of `k` of `capture`'s lights within `zenith` degrees of the view
+    axis, as given: the largest curl, convexity and residual ratio, and how many sets were
+    flagged."""
     near = np.flatnonzero(capture.lights[:, 2] >= np.cos(np.radians(zenith)) - 1e-6)
     sets = []
     for _ in range(count):
-        pick = rng.choice(near, 5, replace=False)
+        pick = rng.choice(near, k, replace=False)
         try:
             sets.append(_figures(capture.images[pick], capture.lights[pick],
                                  max_zenith_deg=zenith))
@@ -102,6 +140,7 @@ def _random_sets(capture, zenith, count, rng):
             "curl_median": float(np.nanmedian(curl)),
             "convexity_max": float(np.nanmax(convexity)),
             "order_gap_max": float(np.nanmax(gap)),
+            "residual_ratio_max": float(np.nanmax([r["residual_ratio"] for r in sets])),
             "flagged": sum(r["mirrored"] or r["reordered"] or r["hollow"] for r in sets),
             "unchecked": sum(bool(r["unchecked"]) for r in sets)}
 
@@ -121,7 +160,26 @@ def psm(data):
                     "lamps 0 and 6 swapped (12 deg apart)": _figures(
                         images, lights[[6, 1, 2, 3, 4, 5, 0, 7, 8, 9, 10, 11]], mask > 0.5),
                     "lamps 0 and 4 swapped (43 deg apart)": _figures(
-                        images, lights[[4, 1, 2, 3, 0, 5, 6, 7, 8, 9, 10, 11]], mask > 0.5)}
+                        images, lights[[4, 1, 2, 3, 0, 5, 6, 7, 8, 9, 10, 11]], mask > 0.5),
+                    "every two lamps swapped": _psm_swaps(images, lights, mask > 0.5)}
+    return out
+
+
+def _psm_swaps(images, lights, mask):
+    """Every two of the twelve lamps swapped, by how far apart they are: how many were
+    called reordered, and the residual ratios."""
+    apart = np.degrees(np.arccos(np.clip(lights @ lights.T, -1, 1)))
+    bands = {"under 10 deg": (0, 10), "10-20 deg": (10, 20), "20-30 deg": (20, 30),
+             "30 deg or more": (30, 180)}
+    out = {band: {"swaps": 0, "reordered": 0, "residual_ratios": []} for band in bands}
+    for i, j in itertools.combinations(range(len(lights)), 2):
+        order = np.arange(len(lights))
+        order[[i, j]] = [j, i]
+        c = jaxps.check_lights(images, lights[order], mask=mask)
+        band = next(b for b, (lo, hi) in bands.items() if lo <= apart[i, j] < hi)
+        out[band]["swaps"] += 1
+        out[band]["reordered"] += c.reordered
+        out[band]["residual_ratios"].append(round(c.residual_ratio, 2))
     return out
 
 
@@ -174,6 +232,12 @@ def leave_one_out(yaleb):
                                      ("y negated", "x negated", "left and right swapped")),
                 "convexity_right": max(row["given"]["convexity"], random["convexity_max"]),
                 "convexity_turned": row["180 degrees"]["convexity"]}
+    def residuals(row):
+        return {"right": {k: row[f"random {w} within 50 deg, given"]["residual_ratio_max"]
+                          for k, w in ((4, "four"), (5, "five"))},
+                "wrong": {4: row["four lamps, two swapped"]["residual_ratio_min"],
+                          5: min(row[k]["residual_ratio"] for k in SPAN_CHANGED)}}
+    res = {s: residuals(row) for s, row in yaleb.items()}
     per = {s: figures(row) for s, row in yaleb.items()}
     out = {}
     for held, f in per.items():
@@ -182,8 +246,16 @@ def leave_one_out(yaleb):
         conv = 0.5 * (max(v["convexity_right"] for v in rest)
                       + min(v["convexity_turned"] for v in rest))
         gap = 0.5 * (max(v["gap_right"] for v in rest) + min(v["gap_wrong"] for v in rest))
+        others = [v for s, v in res.items() if s != held]
+        slack = np.sqrt(max(v["right"][4] for v in others)
+                        * min(v["wrong"][4] for v in others)) - 1
+        factor = {k: 1 + slack / (k - 3) for k in (4, 5)}
+        mine = res[held]
         out[held] = {"curl_threshold": round(curl, 3), "convexity_threshold": round(conv, 3),
-                     "order_margin": round(gap, 3),
+                     "order_margin": round(gap, 3), "residual_slack": round(float(slack), 3),
+                     "residual_right_passes": all(mine["right"][k] <= factor[k] for k in (4, 5)),
+                     "residual_wrong_flagged": all(mine["wrong"][k] > factor[k]
+                                                   for k in (4, 5)),
                      "right_passes": (f["curl_right"] <= curl and f["convexity_right"] <= conv
                                       and f["gap_right"] <= gap),
                      "wrong_flagged": (f["curl_mirrored"] > curl and f["convexity_turned"] > conv
@@ -211,15 +283,23 @@ def main():
                      for k, v in row.items() if "curl" in v]
             extra = [f"{k}: curl max {v['curl_max']:.2f}, median {v['curl_median']:.2f}, "
                      f"convexity max {v['convexity_max']:+.2f}, order gap max "
-                     f"{v['order_gap_max']:.2f}; {v['flagged']} of {v['sets']} "
+                     f"{v['order_gap_max']:.2f}, residual ratio max "
+                     f"{v['residual_ratio_max']:.2f}; {v['flagged']} of {v['sets']} "
                      f"flagged, {v['not_measured']} not measured"
                      for k, v in row.items() if "curl_max" in v]
+            extra += [f"{k}: residual ratio min {v['residual_ratio_min']:.2f}, "
+                      f"{v['reordered']} of {v['swaps']} reordered"
+                      for k, v in row.items() if "residual_ratio_min" in v]
+            extra += [f"{k}: " + ", ".join(f"{band} {b['reordered']} of {b['swaps']}"
+                                          for band, b in v.items())
+                      for k, v in row.items() if k == "every two lamps swapped"]
             print(f"{name}: " + "; ".join(cells + extra))
     for held, r in result["leave_one_subject_out"].items():
         print(f"{held} held out: curl threshold {r['curl_threshold']:.2f}, convexity "
-              f"{r['convexity_threshold']:+.2f}, order margin {r['order_margin']:.2f} from the "
-              f"others; its right lights pass: "
-              f"{r['right_passes']}, its wrong ones flagged: {r['wrong_flagged']}")
+              f"{r['convexity_threshold']:+.2f}, order margin {r['order_margin']:.2f}, "
+              f"residual slack {r['residual_slack']:.2f} from the others; its right lights "
+              f"pass: {r['right_passes']} (residual {r['residual_right_passes']}), its wrong "
+              f"ones flagged: {r['wrong_flagged']} (residual {r['residual_wrong_flagged']})")
     print("check_lights: " + ", ".join(f"{k} {1e3 * v:.1f} ms"
                                        for k, v in result["seconds"].items()))
     print(write_json("light_check", result))

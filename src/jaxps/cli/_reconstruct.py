@@ -336,6 +336,7 @@ def _light_check(cap) -> dict | None:
         return None
     rounded = lambda v: None if not np.isfinite(v) else round(float(v), 4)
     return {"curl": rounded(c.curl), "convexity": rounded(c.convexity),
+            "residual_ratio": rounded(c.residual_ratio),
             "mirrored": bool(c.mirrored), "reordered": bool(c.reordered),
             "best_order": None if c.best_order is None else list(c.best_order),
             "hollow": bool(c.hollow), "summary": c.summary()}
@@ -352,7 +353,7 @@ def _light_line(check: dict | None) -> str | None:
         said.append(f"in another order, best {check['best_order']}")
     if check["hollow"]:
         said.append("turned by 180 degrees: the surface is hollow")
-    return (f"the lights do not fit the frames' shape ({'; '.join(said)}): see the warning "
+    return (f"the lights do not fit the frames ({'; '.join(said)}): see the warning "
             "above and \"light_check\" in summary.json")
 
 

@@ -11,7 +11,10 @@ no model of the object. Turning the lights by 180 degrees gives $(-p, -q)$, inte
 the same object, hollow. Its sign of curvature tells that one apart, for objects that bulge
 toward the camera, as faces do. A lights file in another order than the frames (a quarter turn
 of a scanner's lamps, frames sorted another way) is found by trying the other orders: one
-whose curl is far lower is the frames' order.
+whose curl is far lower, or (from four lights on) whose least-squares residual is far lower,
+is the frames' order. The residual sees the orders the shape cannot (a centre lamp swapped
+with an outer one), and cannot see those the shape can (mirror images): each is blind where
+the other looks.
 """
 
 from __future__ import annotations
@@ -39,6 +42,10 @@ MIRRORED_CURL = 1.35
 HOLLOW_CONVEXITY = 0.1
 # How much lower than the lights' own curl another order's must be to be called the frames'.
 REORDER_MARGIN = 0.4
+# How many times the lowest least-squares residual (the median over cells) of the orders tried
+# the lights' own must be to be called in the wrong order: 1 + RESIDUAL_SLACK / (K - 3), for
+# K - 3 residual degrees of freedom per cell (5 for four lights, 3 for five, 1.44 for twelve).
+RESIDUAL_SLACK = 4.0
 # Up to this many lights every order is tried; above, each swap of two, each cyclic shift,
 # the reversal, and the order of frame numbers sorted as text (1, 10, 11, 2, ...) both ways.
 _ALL_ORDERS = 6
@@ -55,13 +62,19 @@ class LightCheck(NamedTuple):
       that bulges toward the camera, positive for a hollow one. NaN as `curl`.
     - `mirrored`: `curl` > `MIRRORED_CURL` = 1.35: the lights mirrored in x or y fit the
       frames' shape better (a wrong sign of one axis, or mirror-image lamps swapped).
-    - `reordered`: another order of the lights, `best_order`, gives a curl lower by more than
-      `REORDER_MARGIN` = 0.4 (and, when `mirrored`, as low as mirroring back would): the
-      lights file lists the lamps in another order than the frames.
+    - `reordered`: another order of the lights, `best_order`, fits the frames far better: its
+      least-squares residual is lower by more than a factor `1 + RESIDUAL_SLACK / (K - 3)`
+      (with at least four lights), or its curl is lower by more than `REORDER_MARGIN` = 0.4
+      (and, when `mirrored`, as low as mirroring back would): the lights file lists the lamps
+      in another order than the frames.
     - `best_order`: with `reordered`, the order: `lights[best_order]` fits the frames (frame
-      k takes line `best_order[k]`); else None. Orders with the same curl (within 0.02) are
-      told apart by the most negative convexity.
-    - `best_curl`: the lowest curl over the orders tried (NaN without a verdict).
+      k takes line `best_order[k]`); else None. It is the order of lowest curl among those
+      whose residual is within that factor of the lowest; orders with the same curl (within
+      0.02) are told apart by the most negative convexity.
+    - `best_curl`: the curl of that order (NaN without a verdict).
+    - `residual_ratio`: the lights' own least-squares residual (the median over the cells of
+      $\\|i - L b\\|^2 / \\|i\\|^2$) over the lowest of the orders tried: 1 when no order fits
+      better; NaN with three lights (every order fits exactly) or without a verdict.
     - `hollow`: `convexity` > 0.1, and neither `mirrored` nor `reordered`: the surface is
       hollow; for a face, the lights are turned by 180 degrees (x and y both negated).
     - `loops`: the number of 2x2 loops of cells measured.
@@ -75,6 +88,7 @@ class LightCheck(NamedTuple):
     reordered: bool
     best_order: tuple[int, ...] | None
     best_curl: float
+    residual_ratio: float
     hollow: bool
     loops: int
     block: int
@@ -99,8 +113,10 @@ class LightCheck(NamedTuple):
         if self.reordered:
             said += (f". The frames fit the lights in the order {list(self.best_order)} (frame k "
                      f"takes line best_order[k] of the lights) far better: curl "
-                     f"{self.best_curl:.2f}. Are the lights listed in another order than the "
-                     "frames (a turn of the lamps, or frames sorted another way)?")
+                     f"{self.best_curl:.2f}, least-squares residual "
+                     f"{1 / self.residual_ratio:.2g} times the lights' own. Are the lights "
+                     "listed in another order than the frames (a turn of the lamps, a lamp moved "
+                     "to the other end of the list, or frames sorted another way)?")
         elif self.hollow:
             said += (". The surface is hollow: if it should bulge toward the camera (a face "
                      "does), the lights are turned by 180 degrees (x and y both negated, or "
@@ -125,17 +141,20 @@ def check_lights(
 
     The same is measured for the lights in other orders (every order up to 6 lights; above,
     each swap of two, each cyclic shift, the reversal and the order of names sorted as text),
-    to find `best_order`.
+    with each order's least-squares residual over the lit blocks, to find `best_order`.
 
     On the shared Yale B faces' five scanner frames, the lights as given gave curl 0.36-0.45
     and mirrored 1.55-1.64; 200 random sets of five of each face's lights within 50 degrees
-    at most 1.03, and no other order of them did better by more than 0.23; psm's cat and owl
-    0.33 and 0.47 (mirrored 1.67, 1.53). Turned by 180 degrees, the faces' convexity went
-    from -0.15..-0.21 to +0.15..+0.21. A quarter turn of the scanner's four outer lamps gave
-    1.16-1.22, and its best order the right lights. Not seen: a swap of the centre lamp with
-    an outer one (0.51-0.68), or of two of psm's lamps 12 degrees apart
-    (`benchmarks/light_check.py`, docs/robust.md "A lights file in the wrong convention or
-    order").
+    at most 1.10, and no other order of them had a curl lower by more than 0.17; psm's cat
+    and owl 0.33 and 0.47 (mirrored 1.67, 1.53). Turned by 180 degrees, the faces' convexity
+    went from -0.15..-0.21 to +0.15..+0.21. A quarter turn of the scanner's four outer lamps
+    gave 1.16-1.22, and its best order the right lights. The residual ratio: 1.00 as given on
+    every face and on psm's objects; at most 1.57 (five lights) and 3.50 (four) over the
+    random sets within 50 degrees; 7.05-221 with two of the cross's lamps swapped that are
+    not mirror images (the centre and an outer one, or two neighbours), four or five lights,
+    or the centre lamp listed last. Not seen: most swaps of two of psm's twelve lamps less
+    than 10 degrees apart (`benchmarks/light_check.py`, docs/robust.md "A lights file in the
+    wrong convention or order").
 
     **Arguments:**
     - `images`: `(K, H, W)` or `(K, H, W, C)` frames, ambient subtracted, intensities
@@ -144,7 +163,8 @@ def check_lights(
     - `mask`: `(H, W)` bool, the object (default: every pixel; dark pixels are left out).
     - `max_zenith_deg`: no verdict when a light is further than this from the view axis.
       Such lights shadow much of a face, where the least-squares normals, and so their curl,
-      are wrong: sets of five of all of Yale B's lights gave up to 1.38 as given.
+      are wrong: sets of five of all of Yale B's lights gave curls up to 1.26 and residual
+      ratios up to 15 as given.
 
     **Returns:** a `LightCheck`.
 
@@ -181,24 +201,39 @@ def check_lights(
     g = _blocks(grey, f)
     lit = mask & (grey.mean(axis=0) > level)
     keep = _blocks(lit[None].astype(np.float32), f)[0] == 1
-    orders = _orders(len(lights))  # the lights as given first
-    curl, convexity, loops = _shape(g, keep, lights[orders])
+    k = len(lights)
+    orders = _orders(k)  # the lights as given first
+    if k > 3:
+        residual = _residuals(g, keep, lights[orders])
+        factor = 1 + RESIDUAL_SLACK / (k - 3)
+        ratio = float(residual[0] / max(residual.min(), 1e-30))
+        fits = residual <= factor * residual.min()  # the frames' order is among these
+    else:  # three lights fit any frames exactly, in any order
+        factor, ratio, fits = np.inf, np.nan, np.ones(len(orders), bool)
+    # The shape only of the orders that fit, and of the lights as given (for the synthetic
+    # scanner's five lamps, 8 of the 120 orders span the same space: its mirror images and turns).
+    shape = np.flatnonzero(fits | (np.arange(len(orders)) == 0))
+    curl, convexity, loops = (np.full(len(orders), v) for v in (np.inf, np.inf, 0))
+    curl[shape], convexity[shape], loops[shape] = _shape(g, keep, lights[orders[shape]])
     if loops[0] < _MIN_LOOPS:
         return _unchecked(int(loops[0]), f, f"{loops[0]} loops of {f}-pixel cells lit and "
                                             f"facing the camera, need {_MIN_LOOPS}")
-    tried = np.where(loops >= _MIN_LOOPS, curl, np.inf)
+    tried = np.where((loops >= _MIN_LOOPS) & fits, curl, np.inf)
     ties = np.flatnonzero(tried <= tried.min() + 0.02)
     best = ties[np.argmin(convexity[ties])]  # of equal curls, the bulging one
-    mirrored = bool(curl[0] > MIRRORED_CURL)
-    # Mirrored lights are only also reordered when an order undoes the mirror as well as
-    # mirroring them back would (a scanner's cross: swapping left and right is a mirror).
-    reordered = bool(tried[best] < curl[0] - REORDER_MARGIN
-                     and (not mirrored or tried[best] <= 2 - curl[0] + 0.02))
+    if ratio > factor:  # not the frames' order: the mirror is judged in the order found
+        mirrored, reordered = bool(tried[best] > MIRRORED_CURL), True
+    else:
+        mirrored = bool(curl[0] > MIRRORED_CURL)
+        # Mirrored lights are only also reordered when an order undoes the mirror as well as
+        # mirroring them back would (a scanner's cross: swapping left and right is a mirror).
+        reordered = bool(tried[best] < curl[0] - REORDER_MARGIN
+                         and (not mirrored or tried[best] <= 2 - curl[0] + 0.02))
     return LightCheck(
         curl=float(curl[0]), convexity=float(convexity[0]), mirrored=mirrored,
         reordered=reordered,
         best_order=tuple(int(i) for i in orders[best]) if reordered else None,
-        best_curl=float(tried[best]),
+        best_curl=float(tried[best]), residual_ratio=ratio,
         hollow=bool(not (mirrored or reordered) and convexity[0] > HOLLOW_CONVEXITY),
         loops=int(loops[0]), block=f, unchecked="")
 
@@ -219,12 +254,29 @@ def _orders(k):
                      text, np.argsort(text)])
 
 
+def _residuals(g, keep, lights):
+    """`(P,)`: the median over the `keep` blocks of `g` `(K, h, w)` of the least-squares fit's
+    relative residual $\\|i - L b\\|^2 / \\|i\\|^2$ under each of the `(P, K, 3)` light
+    sets. The median, not the sum: the shadows and highlights of a few blocks would otherwise
+    decide. On the Yale B faces with four lights (scratch runs, thirtieth session), the sum
+    gave up to 3.52 for random sets within 50 degrees and down to 3.1 for two lamps of the
+    cross swapped; the median up to 3.75 and down to 7.05."""
+    if not keep.any():
+        return np.zeros(len(lights))
+    lit = g[:, keep].astype(np.float32)
+    # (I - L L^+) i: the part of each cell's samples that no normal under these lights explains
+    project = np.eye(len(g)) - lights @ np.linalg.pinv(lights)
+    fit = np.matmul(project.astype(np.float32), lit)
+    return np.median((fit ** 2).sum(axis=1) / np.maximum((lit ** 2).sum(axis=0), 1e-30), axis=1)
+
+
 def _shape(g, keep, lights):
     """`(curl, convexity, loops)`, each `(P,)`: the least-squares normals of the `(K, h, w)`
     blocks `g` under each of the `(P, K, 3)` light sets, measured over the 2x2 loops of `keep`
     blocks whose normal leans less than 78 degrees from the view axis."""
-    b = np.einsum("pck,khw->pchw", np.linalg.pinv(lights).astype(np.float32),
-                  g.astype(np.float32))
+    k, h, w = g.shape
+    b = np.matmul(np.linalg.pinv(lights).astype(np.float32),
+                  g.reshape(k, h * w).astype(np.float32)).reshape(-1, 3, h, w)
     keep = keep & (b[:, 2] > 0.2 * np.linalg.norm(b, axis=1))  # |p|, |q| <= 4.9
     nz = np.where(keep, b[:, 2], 1)
     p, q = np.where(keep, -b[:, 0] / nz, 0), np.where(keep, -b[:, 1] / nz, 0)
@@ -241,8 +293,8 @@ def _shape(g, keep, lights):
 
 def _unchecked(loops, block, why):
     return LightCheck(curl=np.nan, convexity=np.nan, mirrored=False, reordered=False,
-                      best_order=None, best_curl=np.nan, hollow=False, loops=loops,
-                      block=block, unchecked=why)
+                      best_order=None, best_curl=np.nan, residual_ratio=np.nan, hollow=False,
+                      loops=loops, block=block, unchecked=why)
 
 
 def _blocks(stack, f):
