@@ -158,6 +158,8 @@ CASES = [
     ("plot_error_maps: shapes (before)", lambda: ev.plot_error_maps(
         {"a": HEIGHT, "b": HEIGHT[1:]}), "share one"),
     ("plot_error_maps: empty", lambda: ev.plot_error_maps({}), "empty"),
+    ("plot_error_maps: units (before: ignored)", lambda: ev.plot_error_maps(
+        {"height error": HEIGHT}, units={"height": "mm"}), r"units names \['height'\]"),
     # report and stability
     ("to_trimesh: pixel_size (before)", lambda: report.to_trimesh(
         HEIGHT, MASK, pixel_size=0), "pixel_size"),

@@ -33,6 +33,9 @@ def plot_error_maps(
     - `path`: where to save the figure (PNG), if given.
 
     **Returns:** the matplotlib `Figure` (closed when saved to `path`).
+
+    **Raises:** `ValueError` when `maps` is empty, its maps are not `(H, W)` of one shape,
+    `mask` has another shape, or `units`, `signed` or `vmax` name a title not in `maps`.
     """
     import matplotlib
 
@@ -52,6 +55,11 @@ def plot_error_maps(
         raise ValueError(f"mask must have the maps' shape {shape}, got {np.shape(mask)}")
     units = units or {}
     vmax = vmax or {}
+    for what, names in (("units", units), ("signed", signed), ("vmax", vmax)):
+        unknown = [n for n in names if n not in maps]
+        if unknown:  # a misspelt title would otherwise be ignored without a word
+            raise ValueError(f"{what} names {unknown}, which are not in maps "
+                             f"{list(maps)}")
     crop = (slice(None), slice(None))
     if mask is not None and np.any(mask):
         rows, cols = np.nonzero(np.asarray(mask, bool))

@@ -167,8 +167,9 @@ def write_report(
         maps = {"height error": comp.height_error}
         if normals is not None:
             maps["angular error"] = comp.angular_error
+        units = {"height error": "scan units", "angular error": "degrees"}
         evaluate.plot_error_maps(maps, mask=comp.mask, signed=("height error",),
-                                 units={"height error": "scan units", "angular error": "degrees"},
+                                 units={k: v for k, v in units.items() if k in maps},
                                  path=files / "scan_error_maps.png")
         errors.append(_figure(rel(files / "scan_error_maps.png"),
                               "errors against the depth scan after scaled ICP", wide=True))
