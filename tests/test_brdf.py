@@ -637,6 +637,7 @@ def test_cli_relight_drops_combed_frame(data, tmp_path, capsys):
     assert rc == 0
     summary = json.loads((out / "relight.json").read_text())
     assert summary["dropped_frames"] == ["yaleB02_P00A+025E+00.pgm"]
+    assert summary["dropped_why"]["yaleB02_P00A+025E+00.pgm"][0].startswith("row/interlace")
     assert len(summary["frames"]) == 4
     assert list(summary["timings_s"]) == ["load", "fit", "relight_and_write"]
     err = capsys.readouterr().err

@@ -250,7 +250,7 @@ def test_reconstruct_with_an_emulated_target_on_a_real_face(tmp_path, data):
     assert err["target"] < 3.5 < 4.5 < err["default"]
 
 
-def test_reconstruct_check_quality_drops_combed_frame(tmp_path, data):
+def test_reconstruct_check_quality_drops_combed_frame(tmp_path, data, capsys):
     """yaleB02's +25,0 frame is interlace-combed: the frame checks (on by default) drop it from
     a single capture, solve with the other four and name it in the summary; with
     `--no-check-quality` it is kept."""
@@ -258,9 +258,15 @@ def test_reconstruct_check_quality_drops_combed_frame(tmp_path, data):
     frames = [str(folder / f"yaleB02_P00{n}.pgm") for n in FIVE]
     ambient = str(folder / "yaleB02_P00_Ambient.pgm")
     args = ["reconstruct", *frames, "--yale-names", "--ambient", ambient]
+    capsys.readouterr()
     assert main([*args, "--out", str(tmp_path / "checked")]) == 0
     summary = json.loads((tmp_path / "checked" / "summary.json").read_text())
     assert summary["dropped_frames"] == ["yaleB02_P00A+025E+00.pgm"]
+    # why, in the summary and the printed line (the thirtieth session; before, only the name)
+    (why,) = summary["dropped_why"]["yaleB02_P00A+025E+00.pgm"]
+    assert why.startswith("row/interlace artefact")
+    assert f"reconstruct: dropped flagged frames yaleB02_P00A+025E+00.pgm ({why})" \
+        in capsys.readouterr().out
     assert summary["size"]["frames"] == 4 and len(summary["lights"]) == len(summary["gains"]) == 4
     assert main([*args, "--no-check-quality", "--out", str(tmp_path / "plain")]) == 0
     summary = json.loads((tmp_path / "plain" / "summary.json").read_text())

@@ -67,7 +67,8 @@ def reconstruct(
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
     `check_quality`: drop the frames `jaxps.check_frames` flags before solving (named under
-    `"dropped_frames"` in the summary; on by default, as in `load_capture`). `intensities`:
+    `"dropped_frames"` in the summary, with their reasons under `"dropped_why"`; on by
+    default, as in `load_capture`). `intensities`:
     see `load_capture` (the summary's `"intensities"` holds the method, the per-frame
     estimates and, for `"semi_calibrated"`, the fit's report `"fit"`; `"gains"` holds their
     inverses). `intensity_mask`, `intensity_normal`, `intensity_ratios`: a reference target in
@@ -135,6 +136,7 @@ def reconstruct(
     summary = {
         "frames": list(cap.names),
         "dropped_frames": list(cap.dropped),
+        "dropped_why": _dropped_why(cap),
         "lights": np.asarray(cap.lights).round(6).tolist(),
         "size": {"frames": len(cap.names), "height": int(cap.images.shape[1]),
                  "width": int(cap.images.shape[2]),
@@ -329,6 +331,20 @@ def _motion(cap) -> dict:
     return {"shifts_px": shifts, "registered": bool(cap.registered)}
 
 
+def _dropped_why(cap) -> dict[str, list[str]]:
+    """The summary's reasons for each dropped frame (`check_frames`' words), by name."""
+    report = cap.frame_check
+    return {} if report is None else {f.name: list(f.reasons) for f in report.flagged}
+
+
+def _dropped_line(summary: dict) -> str:
+    """The printed line naming the dropped frames, each with its first reason."""
+    why = summary.get("dropped_why", {})
+    return "dropped flagged frames " + ", ".join(
+        f"{name} ({why[name][0]})" if why.get(name) else name
+        for name in summary["dropped_frames"])
+
+
 def _light_check(cap) -> dict | None:
     """The summary's record of `load_capture`'s `check_lights` (None without lights)."""
     c = cap.light_check
@@ -372,7 +388,7 @@ def run(args) -> int:
         light_positions=args.light_positions, pixel_size=args.pixel_size, bits=args.bits,
     )
     if summary["dropped_frames"]:
-        print("reconstruct: dropped flagged frames " + ", ".join(summary["dropped_frames"]))
+        print("reconstruct: " + _dropped_line(summary))
     if summary["motion"]["registered"]:
         largest = np.abs(np.asarray(summary["motion"]["shifts_px"])).max()
         print(f"reconstruct: frames moved up to {largest:.2f} px; registered")

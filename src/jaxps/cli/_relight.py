@@ -21,6 +21,8 @@ from ..report._writers import write_json
 from ._reconstruct import (
     _NEAR_STEPS_INTEGRATION,
     _card_line,
+    _dropped_line,
+    _dropped_why,
     _intensities,
     _light_check,
     _light_line,
@@ -88,8 +90,8 @@ def relight_capture(
       zenith angle in this many frames.
     - `n_samples`, `max_steps`, `seed`: passed to `fit_brdf` (`key=jax.random.key(seed)`).
     - `check_quality`: drop the frames `jaxps.check_frames` flags (corrupt, badly exposed or
-      inconsistent) before fitting; they are listed under `"dropped_frames"` in the summary
-      (on by default, as in `load_capture`).
+      inconsistent) before fitting; they are listed under `"dropped_frames"` in the summary,
+      with their reasons under `"dropped_why"` (on by default, as in `load_capture`).
     - `register`: undo motion between frames (see `load_capture`; `"motion"` in the summary).
     - `intensities`, `intensity_mask`, `intensity_normal`, `intensity_ratios`: each frame's
       flash strength, as for `load_capture` (`"intensities"` in the summary, as
@@ -183,7 +185,8 @@ def relight_capture(
 
     fit = model.fit._asdict()
     summary = {
-        "frames": list(cap.names), "dropped_frames": list(cap.dropped), "crop": cap.crop,
+        "frames": list(cap.names), "dropped_frames": list(cap.dropped),
+        "dropped_why": _dropped_why(cap), "crop": cap.crop,
         "method": method,
         "intensities": _intensities(cap, intensity_mask, intensity_normal, intensity_ratios),
         "motion": _motion(cap),
@@ -219,7 +222,7 @@ def run(args) -> int:
         intensity_normal=args.intensity_normal, intensity_ratios=args.intensity_ratios,
         light_positions=args.light_positions, pixel_size=args.pixel_size, bits=args.bits)
     if s["dropped_frames"]:
-        print("relight: dropped flagged frames " + ", ".join(s["dropped_frames"]))
+        print("relight: " + _dropped_line(s))
     if "target" in s["intensities"]:
         print("relight: " + _card_line(s["intensities"]))
     if _light_line(s["light_check"]):
