@@ -66,3 +66,32 @@ def test_sweep_progress():
     assert [c[0] for c in calls] == ["light_error_deg=0: l2", "light_error_deg=0: irls",
                                      "light_error_deg=2: l2", "light_error_deg=2: irls", ""]
     assert shown == quiet
+
+
+def test_progress_bar_writes_warnings_above_itself():
+    """A library user's bar: a warning of the `jaxps` logger during a stage is a line of its
+    own (until the thirtieth session Python's fallback handler wrote it into the bar's line).
+    Run in a fresh interpreter: pytest sets up logging handlers of its own."""
+    import os
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    script = """
+import logging
+from jaxps import report
+hook = report.progress_bar()
+hook("first stage", 0, 2)
+logging.getLogger("jaxps").warning("something odd")
+hook("second stage", 1, 2)
+hook("", 2, 2)
+print(len(logging.getLogger("jaxps").handlers))
+"""
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                          text=True, timeout=120, check=True)
+    lines = [line.split("\r")[-1].rstrip() for line in proc.stderr.split("\n")]
+    assert "something odd" in lines, proc.stderr
+    assert "first stage" in proc.stderr and "second stage" in proc.stderr
+    assert proc.stdout.strip() == "0"  # the handler leaves with the bar

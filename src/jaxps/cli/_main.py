@@ -6,7 +6,6 @@ import argparse
 import gc
 import importlib
 import importlib.metadata
-import logging
 import sys
 
 from . import _args
@@ -48,26 +47,10 @@ def console() -> int:
     return _run(None, freeze=True)
 
 
-class _BarSafeHandler(logging.Handler):
-    """Writes the `jaxps` logger's warnings on lines of their own: a stage's progress bar is
-    cleared first and drawn again after (`tqdm.write`), where Python's fallback handler wrote
-    them into the bar's line."""
-
-    def emit(self, record):
-        from tqdm import tqdm
-
-        try:
-            tqdm.write(self.format(record), file=sys.stderr)
-        except Exception:  # noqa: BLE001  logging must not stop the command
-            self.handleError(record)
-
-
 def _log_above_bars():
-    logger = logging.getLogger("jaxps")
-    if not any(isinstance(h, _BarSafeHandler) for h in logger.handlers):
-        handler = _BarSafeHandler(logging.WARNING)
-        handler.setFormatter(logging.Formatter("%(message)s"))
-        logger.addHandler(handler)
+    from ..report._progress import log_above_bars  # the commands' bars write the warnings
+
+    log_above_bars(always=True)
 
 
 def _run(argv, freeze):
