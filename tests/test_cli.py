@@ -394,6 +394,26 @@ def test_reconstruct_with_near_light_positions(tmp_path, capsys):
     for name in ("face", "face2"):
         got = read_normal_map(tmp_path / "many" / name / "normals.png")
         assert np.median(np.asarray(jaxps.angular_error(got, normals))[inside]) < 1.0
+    # a capture with a combed frame: dropped inside load_capture, and the kept frames matched
+    # to their lamps, as in a run on that folder alone
+    import cv2
+
+    shutil.copytree(tmp_path / "face", tmp_path / "combed")
+    frame = cv2.imread(str(tmp_path / "combed" / "f2.png"), cv2.IMREAD_UNCHANGED)
+    frame[1::2] = 0
+    cv2.imwrite(str(tmp_path / "combed" / "f2.png"), frame)
+    near_args = ["--mask", str(tmp_path / "mask.png"), "--no-register", "--light-positions",
+                 str(tmp_path / "positions.txt"), "--pixel-size", str(px)]
+    assert main(["reconstruct", str(tmp_path / "face"), str(tmp_path / "combed"), *near_args,
+                 "--out", str(tmp_path / "many_combed")]) == 0
+    assert main(["reconstruct", str(tmp_path / "combed"), *near_args, "--out",
+                 str(tmp_path / "combed_alone")]) == 0
+    rows = json.loads((tmp_path / "many_combed" / "summary.json").read_text())["captures"]
+    assert rows[1]["dropped"].startswith("f2.png (row/interlace")
+    together, alone = (read_normal_map(tmp_path / run / "normals.png") for run in
+                       ("many_combed/combed", "combed_alone"))
+    assert float(np.max(np.asarray(jaxps.angular_error(together, alone))[inside])) < 0.5
+    assert np.median(np.asarray(jaxps.angular_error(together, normals))[inside]) < 1.0
 
     capsys.readouterr()
     positions_file = str(tmp_path / "positions.txt")
