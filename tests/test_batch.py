@@ -517,7 +517,7 @@ def test_many_captures_drop_frames_before_the_intensities(tmp_path):
     """A capture in `reconstruct_many` is solved as `load_capture` + `photometric_stereo`
     solve it alone, also when a frame is dropped. Until the thirtieth session the many-capture
     path dropped the frame only after the intensities were estimated with it: the albedo
-    differed by 0.10 (frontal) and the semi-calibrated normals by up to 5.5 degrees."""
+    differed by a common factor, and with semi-calibrated intensities the normals too."""
     import cv2
 
     from jaxps.acquisition import load_capture

@@ -189,18 +189,10 @@ def check_lights(
         return _unchecked(0, 1, f"light {int(zenith.argmax())} is {zenith.max():.0f} degrees "
                                 f"from the view axis, more than max_zenith_deg="
                                 f"{max_zenith_deg:g}")
-    # The level of the lit part of the mask and its extent (which sets the block size), found
-    # on every 4th row and column; a block is kept when each of its pixels is lit.
-    sub, sub_mask = grey[:, ::4, ::4].mean(axis=0), mask[::4, ::4]
-    level = 0.1 * np.nanpercentile(sub[sub_mask], 99) if sub_mask.any() else np.nan
-    rows, cols = np.nonzero(sub_mask & (sub > level))
-    if not len(rows):
+    cells = _cells(grey, mask)
+    if cells is None:
         return _unchecked(0, 1, "no lit pixel in the mask")
-    side = 4 * int(max(rows.max() - rows.min(), cols.max() - cols.min())) + 4
-    f = max(1, round(side / _CELLS_ACROSS))
-    g = _blocks(grey, f)
-    lit = mask & (grey.mean(axis=0) > level)
-    keep = _blocks(lit[None].astype(np.float32), f)[0] == 1
+    g, keep, f = cells
     k = len(lights)
     orders = _orders(k)  # the lights as given first
     if k > 3:
@@ -254,20 +246,35 @@ def _orders(k):
                      text, np.argsort(text)])
 
 
-def _residuals(g, keep, lights):
+def _cells(grey, mask):
+    """`(g, keep, f)`: the `(K, H, W)` frames `grey` averaged over `f` x `f` blocks, about
+    `_CELLS_ACROSS` across the lit part of `mask`, and which blocks have every pixel lit (in
+    the mean frame, above a tenth of its 99th percentile in the mask); None when no pixel of
+    `mask` is lit. The level and the extent are found on every 4th row and column."""
+    sub, sub_mask = grey[:, ::4, ::4].mean(axis=0), mask[::4, ::4]
+    level = 0.1 * np.nanpercentile(sub[sub_mask], 99) if sub_mask.any() else np.nan
+    rows, cols = np.nonzero(sub_mask & (sub > level))
+    if not len(rows):
+        return None
+    side = 4 * int(max(rows.max() - rows.min(), cols.max() - cols.min())) + 4
+    f = max(1, round(side / _CELLS_ACROSS))
+    lit = mask & (grey.mean(axis=0) > level)
+    return _blocks(grey, f), _blocks(lit[None].astype(np.float32), f)[0] == 1, f
+
+
+def _residuals(g, keep, lights, average=np.median):
     """`(P,)`: the median over the `keep` blocks of `g` `(K, h, w)` of the least-squares fit's
     relative residual $\\|i - L b\\|^2 / \\|i\\|^2$ under each of the `(P, K, 3)` light
-    sets. The median, not the sum: the shadows and highlights of a few blocks would otherwise
-    decide. On the Yale B faces with four lights (scratch runs, thirtieth session), the sum
-    gave up to 3.52 for random sets within 50 degrees and down to 3.1 for two lamps of the
-    cross swapped; the median up to 3.75 and down to 7.05."""
+    sets (`average=np.mean`: the mean, which `benchmarks/light_check.py` compares). The
+    median, not the mean: the shadows and highlights of a few blocks would otherwise decide
+    (docs/robust.md, "A lights file in the wrong convention or order")."""
     if not keep.any():
         return np.zeros(len(lights))
     lit = g[:, keep].astype(np.float32)
     # (I - L L^+) i: the part of each cell's samples that no normal under these lights explains
     project = np.eye(len(g)) - lights @ np.linalg.pinv(lights)
     fit = np.matmul(project.astype(np.float32), lit)
-    return np.median((fit ** 2).sum(axis=1) / np.maximum((lit ** 2).sum(axis=0), 1e-30), axis=1)
+    return average((fit ** 2).sum(axis=1) / np.maximum((lit ** 2).sum(axis=0), 1e-30), axis=1)
 
 
 def _shape(g, keep, lights):
