@@ -543,6 +543,32 @@ def test_many_captures_drop_frames_before_the_intensities(tmp_path):
             < 0.1
 
 
+def test_many_captures_report_motion(tmp_path):
+    """The `motion` column: the largest shift between a capture's frames, and whether it was
+    undone (up to 4 px) or left. One frame moved by 2 and by 6 columns; the frame check is
+    off, since it drops a frame of this face on black moved by 2 px as inconsistent."""
+    import cv2
+
+    scene = face_scene(96, noise=0.01)
+    for name, shift in (("still", 0), ("moved", 2), ("far", 6)):
+        (tmp_path / name).mkdir()
+        for i, f in enumerate(np.asarray(scene.images)):
+            f = np.roll(f, shift, axis=1) if i == 3 else f
+            cv2.imwrite(str(tmp_path / name / f"f{i}.png"),
+                        np.round(np.clip(f, 0, 1) * 65535).astype(np.uint16))
+    _, rows = jaxps.reconstruct_many([tmp_path / n for n in ("still", "moved", "far")],
+                                     lights=np.asarray(scene.lights), progress=False,
+                                     check_quality=False)
+    still, moved, far = (r["motion"] for r in rows)
+    assert still.endswith(" px") and float(still.split()[0]) < 0.5, still
+    assert moved.endswith(" px, undone") and abs(float(moved.split()[0]) - 2) < 0.2, moved
+    assert far.endswith(" px, left") and abs(float(far.split()[0]) - 6) < 0.2, far
+    assert "motion" in jaxps.summary_table(rows).splitlines()[0]
+    _, rows = jaxps.reconstruct_many([tmp_path / "moved"], lights=np.asarray(scene.lights),
+                                     progress=False, check_quality=False, register=False)
+    assert rows[0]["motion"] == ""  # not measured
+
+
 def test_batch_sharded_over_two_host_devices():
     """The sharded path (several devices) equals single calls; two CPU devices are forced in a
     fresh interpreter, since the device count is fixed when JAX starts."""

@@ -13,7 +13,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..acquisition import list_frames, load_capture
-from ..acquisition._capture import _kept
+from ..acquisition._capture import MAX_SHIFT, _kept
 from ..core import Status, status_counts
 from ..core._progress import Stages
 from ..integration import integrate
@@ -331,6 +331,16 @@ def _motion(cap) -> dict:
     return {"shifts_px": shifts, "registered": bool(cap.registered)}
 
 
+def _motion_cell(cap) -> str:
+    """The many-capture table's `motion`: the largest shift between frames and whether it was
+    undone ("1.85 px, undone"; "6.10 px, left" when too large to undo; "" when not measured)."""
+    if cap.shifts is None:
+        return ""
+    largest = float(np.abs(np.asarray(cap.shifts)).max())
+    return f"{largest:.2f} px" + (", undone" if cap.registered
+                                  else ", left" if largest > MAX_SHIFT else "")
+
+
 def _dropped_why(cap) -> dict[str, list[str]]:
     """The summary's reasons for each dropped frame (`check_frames`' words), by name."""
     report = cap.frame_check
@@ -444,9 +454,10 @@ def reconstruct_many(
     its result is None; nothing is skipped silently. `light_positions`, `pixel_size`: near
     lamps, the same for every capture, as for `reconstruct` (each capture is then solved by
     `near_photometric_stereo`; the rows gain `near_steps` and `near_converged`).
-    `method`, `shadow_threshold`: as for `reconstruct`. The `lights` column gives
-    `load_capture`'s `check_lights` verdict: `ok`, `mirrored?`, `reordered?`, `hollow?` or
-    `unchecked`.
+    `method`, `shadow_threshold`: as for `reconstruct`. The `motion` column gives the largest
+    shift between the frames (`Capture.shifts`) and whether it was undone, "left" when it was
+    more than `MAX_SHIFT` = 4 px; the `lights` column `load_capture`'s `check_lights` verdict: `ok`,
+    `mirrored?`, `reordered?`, `hollow?` or `unchecked`.
 
     **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
     `summary_table(rows)` formats the rows.
@@ -465,7 +476,8 @@ def reconstruct_many(
     bar = tqdm(list(folders), desc="captures", unit="capture", disable=not progress)
     for folder in bar:
         row = {"capture": os.path.basename(os.path.normpath(os.fspath(folder))), "frames": 0,
-               "dropped": "", "lights": "", "ok_pixels": 0, "ok_%": 0.0, "error": ""}
+               "dropped": "", "motion": "", "lights": "", "ok_pixels": 0, "ok_%": 0.0,
+               "error": ""}
         if positions is not None:
             row.update(near_steps=0, near_converged=False)
         res = None
@@ -481,6 +493,7 @@ def reconstruct_many(
                              else "ok")
             report = cap.frame_check
             row["frames"] = len(cap.names) + len(cap.dropped)
+            row["motion"] = _motion_cell(cap)
             if report is not None:
                 row["dropped"] = ", ".join(f"{f.name} ({f.reasons[0]})" for f in report.flagged)
             if positions is not None:  # load_capture has matched the frames to the lamps
