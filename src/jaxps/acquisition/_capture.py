@@ -23,7 +23,7 @@ from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ..ps._photometric_stereo import photometric_stereo
 from ._face import bucket_box, crop, detect_face
 from ._files import FRAME_EXTENSIONS, PathLike, list_frames, load_stack, read_image, read_mask
-from ._quality import QualityReport, screen_capture
+from ._quality import QualityReport, flag_inconsistent, only_inconsistent, screen_capture
 from ._register import _shift, estimate_shifts
 from ._stack import _lit_level, _subtract_ambient, mask_from_intensity
 
@@ -65,8 +65,9 @@ class Capture(NamedTuple):
       lights file mirrored, in another order than the frames, or turned by 180 degrees?), or
       None without lights.
     - `frame_check`: the `jaxps.check_frames` report on the frames as given (every frame,
-      the dropped ones with their reasons), or None with `check_quality=False` or frames too
-      small to check.
+      the dropped ones with their reasons; the consistency as judged again after the motion
+      step, when frames were moved), or None with `check_quality=False` or frames too small
+      to check.
     """
 
     images: np.ndarray
@@ -135,7 +136,10 @@ def load_capture(
       `mask` when one is given) and drop the flagged ones (logged on logger `"jaxps"`, named
       in `Capture.dropped`; `ValueError` if fewer than 3 remain). On by default: one
       interlace-combed frame of five costs yaleB02 4 degrees of median normal error
-      (docs/captures.md); False keeps every frame.
+      (docs/captures.md); False keeps every frame. With `register`, a frame flagged only as
+      inconsistent with the others (which a frame that moved is) is kept until the motion
+      is undone, and the frames' consistency is judged again then (`Capture.frame_check`
+      holds the last verdict).
     - `register`: measure each frame's motion against the frame lit closest to the view axis
       (`jaxps.estimate_shifts` on the given mask's box, else the whole frame) and, when the
       largest shift is between `MIN_SHIFT` = 0.5 px and `MAX_SHIFT` = 4 px, move the frames
@@ -246,7 +250,8 @@ def load_capture(
     if check_quality:  # inside the given mask: the frames are judged where they will be used
         try:
             images, saturated, names, light_array, frame_check = screen_capture(
-                images, saturated, names, light_array, mask=mask_array)
+                images, saturated, names, light_array, mask=mask_array,
+                spare_inconsistent=register)
         except ValueError as err:
             if dark_mask is None:
                 raise
@@ -277,6 +282,14 @@ def load_capture(
     if register:
         images, saturated, shifts, border = _register(images, saturated, light_array,
                                                       mask_array, names)
+        if frame_check is not None and (border or any(map(only_inconsistent,
+                                                            frame_check.frames))):
+            kept, frame_check = _check_again(images, names, frame_check, mask_array, border)
+            images, saturated, shifts = images[kept], saturated[kept], shifts[kept]
+            names = tuple(names[i] for i in kept)
+            light_array = None if light_array is None else light_array[kept]
+            if target is not None:
+                e = e[kept]
 
     box, full_size = None, images.shape[1:3]
     if crop_face:
@@ -505,6 +518,45 @@ def _folder_ambient(folder, ambient):
 
 def _is_auto(ambient):
     return isinstance(ambient, str) and ambient == "auto"
+
+
+def _check_again(images, names, report, mask, border):
+    """`(kept, report)` after the motion step: when the frames were moved (`border` > 0),
+    the consistency of the frames now held (`names`: those `report` passed, and those it
+    flagged only as inconsistent, which `screen_capture` kept) is judged again on the frames
+    as registered (`border` rows and columns at the edges left out); else the first verdict
+    stands. The frames flagged are dropped; `kept` indexes `names`. In the report returned,
+    the held frames' reasons are the last verdict's, marked when found after the motion was
+    undone.
+
+    A frame that moved is inconsistent with the others, so the check before the motion
+    step would drop it where registering it keeps it (`benchmarks/input_checks.py`,
+    "moved_frame"). And the check flags one frame at a time while five are left, so a frame
+    inconsistent for another reason can hide behind a moved one until this second look."""
+    held = [f for f in report.frames if not f.flagged or only_inconsistent(f)]  # = names
+    checks = list(report.frames)
+    if border:
+        region = np.ones(images.shape[1:3], bool) if mask is None else mask.copy()
+        region[:border], region[-border:] = False, False  # filled by repeating the edge
+        region[:, :border], region[:, -border:] = False, False
+        grey = images if images.ndim == 3 else images.mean(axis=-1)
+        flagged, incons = flag_inconsistent(grey, region, np.ones(len(held), bool))
+        for j, f in enumerate(held):
+            checks[f.index] = f._replace(
+                reasons=(f"{flagged[j]} (after undoing motion)",) if j in flagged else (),
+                measures={**f.measures, "inconsistency": float(incons[j])})
+    kept = [j for j, f in enumerate(held) if not checks[f.index].flagged]
+    dropped = [names[j] for j, f in enumerate(held) if checks[f.index].flagged]
+    if dropped:
+        logging.getLogger("jaxps").warning(
+            "load_capture: inconsistent with the other frames once their motion was %s, "
+            "dropped: %s", "undone" if border else "measured (too small or too large to undo)",
+            ", ".join(dropped))
+    checks = QualityReport(tuple(checks))
+    if len(kept) < 3:
+        raise ValueError(f"frames: only {len(kept)} of {len(report.frames)} frames passed the "
+                         f"quality checks, need at least 3.\n{checks.summary()}")
+    return np.array(kept), checks
 
 
 def _register(images, saturated, lights, mask, names):

@@ -58,6 +58,8 @@ __all__ = [
 
 # The smallest frame `check_frames` measures (its row spikes and comb need neighbours).
 _MIN_ROWS, _MIN_COLS = 5, 3
+# The start of the reason `check_frames` gives a frame that the others do not predict.
+INCONSISTENT = "inconsistent with the other frames"
 
 
 class QualityThresholds(NamedTuple):
@@ -203,6 +205,33 @@ def _inconsistency(grey, mask, candidates, max_pixels=20000):
     return out
 
 
+def flag_inconsistent(grey, mask, candidates, thresholds=None):
+    """Leave-one-out consistency of the `(K, H, W)` numpy `grey` frames inside `mask`, one
+    frame at a time among the `(K,)` bool `candidates`: flag the worst frame if it stands out,
+    then re-measure the rest. Each frame must be predicted from at least 4 others (3 others
+    may have coplanar lights and predict nothing), so this needs 5 candidates.
+
+    `thresholds`: a `QualityThresholds` (default: the defaults).
+
+    **Returns:** `(flagged, inconsistency)`: frame index -> reason (it starts with
+    `INCONSISTENT`), and the `(K,)` leave-one-out residuals (NaN where not measured).
+    """
+    t = QualityThresholds() if thresholds is None else thresholds
+    candidates = np.array(candidates, bool)
+    flagged, incons = {}, np.full(grey.shape[0], np.nan)
+    while candidates.sum() >= 5:
+        current = _inconsistency(grey, mask, candidates)
+        incons = np.where(candidates, current, incons)
+        typical = float(np.nanmedian(current))
+        worst = int(np.nanargmax(current))
+        if current[worst] <= max(t.inconsistency_ratio * typical, t.inconsistency_min):
+            break
+        flagged[worst] = (f"{INCONSISTENT}: leave-one-out residual {current[worst]:.2f} vs "
+                          f"median {typical:.2f}")
+        candidates[worst] = False
+    return flagged, incons
+
+
 def check_frames(
     frames: Float[ArrayLike, "K H W *C"],
     *,
@@ -293,22 +322,10 @@ def check_frames(
             reasons[i].append(
                 f"saturated: {mi['saturated_fraction']:.0%} of pixels at or above "
                 f"{t.saturation}")
-    # Leave-one-out consistency, one frame at a time: flag the worst frame if it stands out,
-    # then re-measure the rest. Each frame must be predicted from at least 4 others (3 others
-    # may have coplanar lights and predict nothing), so this needs 5 unflagged frames.
-    candidates = np.array([not r for r in reasons], bool)
-    incons = np.full(k, np.nan)
-    while candidates.sum() >= 5:
-        current = _inconsistency(grey, sel, candidates)
-        incons = np.where(candidates, current, incons)
-        typical = float(np.nanmedian(current))
-        worst = int(np.nanargmax(current))
-        if current[worst] <= max(t.inconsistency_ratio * typical, t.inconsistency_min):
-            break
-        reasons[worst].append(
-            f"inconsistent with the other frames: leave-one-out residual {current[worst]:.2f} "
-            f"vs median {typical:.2f}")
-        candidates[worst] = False
+    flagged, incons = flag_inconsistent(grey, sel, np.array([not r for r in reasons], bool),
+                                        t)
+    for i, reason in flagged.items():
+        reasons[i].append(reason)
     checks = []
     for i in range(k):
         mi = {key: float(v[i]) for key, v in meas.items()}
@@ -390,9 +407,19 @@ def check_file(path: str | os.PathLike) -> str | None:
 _LOG = logging.getLogger("jaxps")
 
 
-def screen_capture(images, saturated, names, lights, mask=None):
+def only_inconsistent(check: FrameCheck) -> bool:
+    """Whether `check`'s only flag is the leave-one-out one: the frame is whole and well
+    exposed, but the other frames do not predict it (it may have moved)."""
+    return bool(check.reasons) and all(r.startswith(INCONSISTENT) for r in check.reasons)
+
+
+def screen_capture(images, saturated, names, lights, mask=None, spare_inconsistent=False):
     """The acquisition hook (`load_capture(..., check_quality=True)`): check the frames, log
     what was flagged and why (logger `"jaxps"`, level WARNING), and drop flagged frames.
+
+    With `spare_inconsistent`, frames flagged only as inconsistent (`only_inconsistent`) are
+    kept: a frame that moved is inconsistent, and `load_capture` undoes the motion first and
+    then checks them again.
 
     **Returns:** `(images, saturated, names, lights, report)` with the flagged frames removed;
     frames too small for `check_frames` are logged and returned unchecked (`report` None).
@@ -405,9 +432,12 @@ def screen_capture(images, saturated, names, lights, mask=None):
                      h, w)
         return images, saturated, names, lights, None
     report = check_frames(np.asarray(images), names=list(names), mask=mask)
+    spared = [f for f in report.flagged if spare_inconsistent and only_inconsistent(f)]
     if report.flagged:
-        _LOG.warning("%s", report.summary())
-    kept = np.flatnonzero(report.keep)
+        _LOG.warning("%s%s", report.summary(), "".join(
+            f"\n  {f.name}: kept for now, to be checked again once the frames' motion is undone"
+            for f in spared))
+    kept = np.flatnonzero([f in spared or not f.flagged for f in report.frames])
     if len(kept) < 3:
         raise ValueError(
             f"frames: only {len(kept)} of {len(names)} frames passed the quality checks, need "
