@@ -104,6 +104,21 @@ def test_four_lights_with_the_centre_and_an_outer_lamp_swapped(face):
     np.testing.assert_array_equal(given[list(c.best_order)], lights[four])
 
 
+def test_noise_free_frames_fit_exactly_in_the_right_order():
+    """Without noise the right order and its mirror images fit to float32 rounding: their
+    residuals are floored (`_EXACT`), so the rounding does not pick an order."""
+    lights = np.asarray(synthetic.scanner_lights(20.0), np.float64)
+    surface = synthetic.face_like(128)
+    images = np.asarray(synthetic.render_scene(surface, lights).images)
+    mask = np.asarray(surface.mask)
+    right = jaxps.check_lights(images, lights, mask=mask)
+    assert right.residual_ratio == 1.0 and not right.flagged
+    y_down = jaxps.check_lights(images, lights * [1, -1, 1], mask=mask)
+    assert y_down.residual_ratio == 1.0 and y_down.mirrored
+    swapped = jaxps.check_lights(images, lights[[1, 0, 2, 3, 4]], mask=mask)
+    assert swapped.reordered and swapped.residual_ratio > 1e3
+
+
 def test_three_lights_have_no_residual_to_compare(face):
     images, lights, mask = face
     c = jaxps.check_lights(images[[0, 1, 3]], lights[[1, 0, 3]], mask=mask)

@@ -288,8 +288,8 @@ def load_capture(
             images, saturated, shifts = images[kept], saturated[kept], shifts[kept]
             names = tuple(names[i] for i in kept)
             light_array = None if light_array is None else light_array[kept]
-            if target is not None:
-                e = e[kept]
+            if target is not None:  # measured on the frames held before: geometric mean 1 again
+                e = (e[kept] / np.exp(np.mean(np.log(e[kept])))).astype(np.float32)
 
     box, full_size = None, images.shape[1:3]
     if crop_face:

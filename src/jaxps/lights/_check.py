@@ -46,6 +46,9 @@ REORDER_MARGIN = 0.4
 # the lights' own must be to be called in the wrong order: 1 + RESIDUAL_SLACK / (K - 3), for
 # K - 3 residual degrees of freedom per cell (5 for four lights, 3 for five, 1.44 for twelve).
 RESIDUAL_SLACK = 4.0
+# Relative residuals below this (1e-4 RMS) are an exact fit, float32 rounding: their ratios
+# would be noise.
+_EXACT = 1e-8
 # Up to this many lights every order is tried; above, each swap of two, each cyclic shift,
 # the reversal, and the order of frame numbers sorted as text (1, 10, 11, 2, ...) both ways.
 _ALL_ORDERS = 6
@@ -111,12 +114,13 @@ class LightCheck(NamedTuple):
                      "sign of each axis, of the azimuths, and that left and right (or upper and "
                      "lower) lamps are not swapped")
         if self.reordered:
+            residual = (f", least-squares residual {1 / self.residual_ratio:.2g} times the "
+                        "lights' own" if self.residual_ratio > 1.05 else "")
             said += (f". The frames fit the lights in the order {list(self.best_order)} (frame k "
                      f"takes line best_order[k] of the lights) far better: curl "
-                     f"{self.best_curl:.2f}, least-squares residual "
-                     f"{1 / self.residual_ratio:.2g} times the lights' own. Are the lights "
-                     "listed in another order than the frames (a turn of the lamps, a lamp moved "
-                     "to the other end of the list, or frames sorted another way)?")
+                     f"{self.best_curl:.2f}{residual}. Are the lights listed in another order "
+                     "than the frames (a turn of the lamps, a lamp moved to the other end of "
+                     "the list, or frames sorted another way)?")
         elif self.hollow:
             said += (". The surface is hollow: if it should bulge toward the camera (a face "
                      "does), the lights are turned by 180 degrees (x and y both negated, or "
@@ -196,9 +200,9 @@ def check_lights(
     k = len(lights)
     orders = _orders(k)  # the lights as given first
     if k > 3:
-        residual = _residuals(g, keep, lights[orders])
+        residual = np.maximum(_residuals(g, keep, lights[orders]), _EXACT)
         factor = 1 + RESIDUAL_SLACK / (k - 3)
-        ratio = float(residual[0] / max(residual.min(), 1e-30))
+        ratio = float(residual[0] / residual.min())
         fits = residual <= factor * residual.min()  # the frames' order is among these
     else:  # three lights fit any frames exactly, in any order
         factor, ratio, fits = np.inf, np.nan, np.ones(len(orders), bool)
@@ -211,6 +215,8 @@ def check_lights(
         return _unchecked(int(loops[0]), f, f"{loops[0]} loops of {f}-pixel cells lit and "
                                             f"facing the camera, need {_MIN_LOOPS}")
     tried = np.where((loops >= _MIN_LOOPS) & fits, curl, np.inf)
+    if not np.isfinite(tried.min()):  # no order that fits leaves enough loops: judge them all
+        tried = np.where(fits, curl, np.inf)
     ties = np.flatnonzero(tried <= tried.min() + 0.02)
     best = ties[np.argmin(convexity[ties])]  # of equal curls, the bulging one
     if ratio > factor:  # not the frames' order: the mirror is judged in the order found
