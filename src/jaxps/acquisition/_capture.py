@@ -276,7 +276,7 @@ def load_capture(
                 from err
         if ratios is not None:
             e = e * ratios[_kept(given, names)]
-            e = (e / np.exp(np.mean(np.log(e)))).astype(np.float32)
+            e = _geometric_unit(e)
 
     shifts, border = None, 0
     if register:
@@ -289,7 +289,7 @@ def load_capture(
             names = tuple(names[i] for i in kept)
             light_array = None if light_array is None else light_array[kept]
             if target is not None:  # measured on the frames held before: geometric mean 1 again
-                e = (e[kept] / np.exp(np.mean(np.log(e[kept])))).astype(np.float32)
+                e = _geometric_unit(e[kept])
 
     box, full_size = None, images.shape[1:3]
     if crop_face:
@@ -305,8 +305,7 @@ def load_capture(
         mask_array = (mask_from_intensity(images) if mask == "auto"
                       else np.ones(images.shape[1:3], bool))
     if border:  # rows and columns the shifted frames filled by repeating their edge
-        keep = np.zeros(full_size, bool)
-        keep[border:-border, border:-border] = True
+        keep = _interior(full_size, border)
         mask_array = mask_array & (keep if box is None else crop(keep, box))
     if target is None:
         try:
@@ -380,7 +379,7 @@ def target_ratios(
         except ValueError as err:
             raise ValueError(f"{what}: {err}") from err
     ratios = estimates[0] / estimates[1]
-    return (ratios / np.exp(np.mean(np.log(ratios)))).astype(np.float32)
+    return _geometric_unit(ratios)
 
 
 def _kept(given, names):
@@ -486,6 +485,11 @@ def _below_ambient(images, ambient):
 _DARK_MASK_FRACTION = 0.5
 
 
+def _geometric_unit(x):
+    """`x` (positive) divided by its geometric mean, as float32: flash strengths are relative."""
+    return (x / np.exp(np.mean(np.log(x)))).astype(np.float32)
+
+
 def _dark_in_mask(images, mask):
     """`(dark, lit_outside)`: the fraction of `mask`'s pixels that are dark in the mean frame
     (below `mask_from_intensity`'s level, `_lit_level`), and the fraction of the
@@ -520,6 +524,13 @@ def _is_auto(ambient):
     return isinstance(ambient, str) and ambient == "auto"
 
 
+def _interior(shape, border):
+    """`(H, W)` bool: True but for the `border` rows and columns at each edge."""
+    keep = np.zeros(shape, bool)
+    keep[border:-border, border:-border] = True
+    return keep
+
+
 def _check_again(images, names, report, mask, border):
     """`(kept, report)` after the motion step: when the frames were moved (`border` > 0),
     the consistency of the frames now held (`names`: those `report` passed, and those it
@@ -536,9 +547,8 @@ def _check_again(images, names, report, mask, border):
     held = [f for f in report.frames if not f.flagged or only_inconsistent(f)]  # = names
     checks = list(report.frames)
     if border:
-        region = np.ones(images.shape[1:3], bool) if mask is None else mask.copy()
-        region[:border], region[-border:] = False, False  # filled by repeating the edge
-        region[:, :border], region[:, -border:] = False, False
+        region = _interior(images.shape[1:3], border)  # the edge: filled by repeating it
+        region = region if mask is None else region & mask
         grey = images if images.ndim == 3 else images.mean(axis=-1)
         flagged, incons = flag_inconsistent(grey, region, np.ones(len(held), bool))
         for j, f in enumerate(held):

@@ -347,12 +347,14 @@ def _dropped_why(cap) -> dict[str, list[str]]:
     return {} if report is None else {f.name: list(f.reasons) for f in report.flagged}
 
 
+def _dropped_text(why: dict[str, list[str]]) -> str:
+    """`_dropped_why`'s frames, each with its first reason: "f2.pgm (row/interlace ...)"."""
+    return ", ".join(f"{name} ({reasons[0]})" for name, reasons in why.items())
+
+
 def _dropped_line(summary: dict) -> str:
     """The printed line naming the dropped frames, each with its first reason."""
-    why = summary.get("dropped_why", {})
-    return "dropped flagged frames " + ", ".join(
-        f"{name} ({why[name][0]})" if why.get(name) else name
-        for name in summary["dropped_frames"])
+    return "dropped flagged frames " + _dropped_text(summary["dropped_why"])
 
 
 def _light_check(cap) -> dict | None:
@@ -404,8 +406,8 @@ def run(args) -> int:
         print(f"reconstruct: frames moved up to {largest:.2f} px; registered")
     if "target" in summary["intensities"]:
         print("reconstruct: " + _card_line(summary["intensities"]))
-    if _light_line(summary["light_check"]):
-        print("reconstruct: " + _light_line(summary["light_check"]))
+    if line := _light_line(summary["light_check"]):
+        print("reconstruct: " + line)
     counts = ", ".join(f"{k} {v}" for k, v in summary["status_counts"].items())
     size = summary["size"]
     print(f"reconstructed {size['frames']} frames of {size['height']}x{size['width']} "
@@ -491,23 +493,18 @@ def reconstruct_many(
             row["lights"] = ("mirrored?" if c.mirrored else "reordered?" if c.reordered
                              else "hollow?" if c.hollow else "unchecked" if c.unchecked
                              else "ok")
-            report = cap.frame_check
             row["frames"] = len(cap.names) + len(cap.dropped)
             row["motion"] = _motion_cell(cap)
-            if report is not None:
-                row["dropped"] = ", ".join(f"{f.name} ({f.reasons[0]})" for f in report.flagged)
+            row["dropped"] = _dropped_text(_dropped_why(cap))
             if positions is not None:  # load_capture has matched the frames to the lamps
-                kept = (np.arange(len(cap.names)) if report is None
-                        else np.flatnonzero(report.keep))
-                centre = _frame_centre(cap)
-                if load_options.get("intensity_mask") is None:
-                    cap = _near_intensities(cap, positions[kept], pixel_size, centre)
+                kept_positions, centre, cap = _near_capture(
+                    folder, cap, positions, pixel_size, load_options.get("intensity_mask"))
             images, lights, sample_mask = cap.images, cap.lights, ~cap.saturated
             if positions is None:
                 res = photometric_stereo(images, lights, mask=cap.mask, sample_mask=sample_mask,
                                          method=method, shadow_threshold=shadow_threshold)
             else:
-                near = near_photometric_stereo(images, positions[kept], mask=cap.mask,
+                near = near_photometric_stereo(images, kept_positions, mask=cap.mask,
                                                pixel_size=pixel_size, centre=centre,
                                                method=method, sample_mask=sample_mask,
                                                shadow_threshold=shadow_threshold,

@@ -225,8 +225,8 @@ def run(args) -> int:
         print("relight: " + _dropped_line(s))
     if "target" in s["intensities"]:
         print("relight: " + _card_line(s["intensities"]))
-    if _light_line(s["light_check"]):
-        print("relight: " + _light_line(s["light_check"]))
+    if line := _light_line(s["light_check"]):
+        print("relight: " + line)
     fit = s["fit"]
     print(f"relight: {args.method} on {len(s['frames'])} frames, {s['mask_pixels']} pixels: "
           f"training RMSE {fit['rmse']:.4g} (x255 = {s['fit_rmse_gray_8bit']:.2f}), "
