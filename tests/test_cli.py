@@ -334,6 +334,58 @@ def test_bits_reaches_the_frames_of_every_frame_reading_command(tmp_path, capsys
     assert "above the 1023 of bits=10" in capsys.readouterr().err
 
 
+def test_linear_8bit_pngs(tmp_path, capsys):
+    # A camera that writes its linear codes to 8-bit PNGs: read as sRGB (the default for 8-bit
+    # PNG) the normals are far off, so the command says it decoded them and how not to;
+    # --linearize none reads them as they are.
+    from jaxps import synthetic
+
+    surface = synthetic.face_like(96, 80)
+    scene = synthetic.render_scene(surface, synthetic.scanner_lights(25.0), noise=0.002, key=0)
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, img in enumerate(np.asarray(scene.images)):
+        cv2.imwrite(str(frames / f"f{k}.png"), np.round(img * 255).astype(np.uint8))
+    np.savetxt(frames / "lights.txt", np.asarray(scene.lights))
+    errors = {}
+    for linearize in ("auto", "none"):
+        out = tmp_path / linearize
+        assert main(["reconstruct", str(frames), "--lights", str(frames / "lights.txt"),
+                     "--linearize", linearize, "--out", str(out)]) == 0
+        printed = capsys.readouterr().out
+        summary = json.loads((out / "summary.json").read_text())
+        assert summary["srgb_decoded"] == (linearize == "auto")
+        assert ("--linearize none if the camera wrote linear codes" in printed) == (
+            linearize == "auto")
+        ok = (np.load(out / "status.npy") == 0) & np.asarray(surface.mask)
+        err = np.asarray(jaxps.angular_error(read_normal_map(out / "normals.png"),
+                                             surface.normals))
+        errors[linearize] = float(np.median(err[ok]))
+    assert errors["none"] < 1.5 and errors["auto"] > 10, errors
+
+
+def test_linearize_reaches_every_frame_reading_command(tmp_path, monkeypatch):
+    # relight and calibrate pass --linearize on to the reader (stopped there: no fit runs).
+    from jaxps.cli import _calibrate, _relight
+
+    seen = []
+
+    def stop(*args, linearize="auto", **kwargs):
+        seen.append(linearize)
+        raise ValueError("stopped")
+
+    monkeypatch.setattr(_relight, "load_capture", stop)
+    monkeypatch.setattr(_calibrate, "load_stack", stop)
+    frame = tmp_path / "f.png"
+    cv2.imwrite(str(frame), np.zeros((8, 8), np.uint8))
+    (tmp_path / "lights.txt").write_text("0 0 1\n")
+    assert main(["relight", str(frame), "--lights", str(tmp_path / "lights.txt"),
+                 "--linearize", "none", "--out", str(tmp_path / "r")]) == 2
+    assert main(["calibrate", str(frame), "--mask", str(frame), "--linearize", "srgb",
+                 "--out", str(tmp_path / "c")]) == 2
+    assert seen == ["none", "srgb"]
+
+
 def test_parser_lists_the_methods_of_the_library():
     # cli/_args.py repeats them so that `jaxps --help` imports no jax.
     from jaxps.cli import _args

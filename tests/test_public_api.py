@@ -115,6 +115,8 @@ ADDED = {
 # that entry rewritten.
 # Not from an issue: `Capture` gained `frame_check` (`check_frames`' report on the frames as
 # given, so that `reconstruct_many` drops frames inside `load_capture`); that entry rewritten.
+# Not from an issue: `jaxps.cli.reconstruct` gained `linearize` (`load_capture`'s, so that a
+# camera's linear 8-bit PNGs are not decoded from sRGB); that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

@@ -131,15 +131,30 @@ def _decode(path: PathLike, linearize: str,
     top, grey = _header(path)
     if raw.ndim == 3:
         raw = raw[..., :3][..., ::-1] if raw.shape[-1] >= 3 and not grey else raw[..., 0]
-    srgb = linearize == "srgb" or (
-        linearize == "auto" and raw.dtype == np.uint8 and path.lower().endswith(_SRGB_EXTENSIONS)
-    )
+    srgb = _srgb(path, raw.dtype == np.uint8, linearize)
     if bits is not None and raw.dtype in (np.uint8, np.uint16):
         top = 2**bits - 1
         if raw.max(initial=0) > top:
             raise ValueError(f"image {path} has codes up to {raw.max()}, above the "
                              f"{top} of bits={bits}")
     return raw, path, srgb, top
+
+
+def _srgb(path: str, eight_bit: bool, linearize: str) -> bool:
+    """Whether `read_image` decodes the file at `path`, of 8-bit pixels or not, from sRGB."""
+    return linearize == "srgb" or (
+        linearize == "auto" and eight_bit and path.lower().endswith(_SRGB_EXTENSIONS))
+
+
+def _decodes_srgb(path: PathLike, linearize: str = "auto") -> bool:
+    """Whether `read_image(path, linearize=linearize)` decodes the file from sRGB, from its
+    name and first bytes only (a PNG's bit depth is in its header; a JPEG is 8-bit), for a
+    command's summary."""
+    path = os.fspath(path)
+    with open(path, "rb") as f:
+        head = f.read(25)
+    eight_bit = not (head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) == 25 and head[24] == 16)
+    return _srgb(path, eight_bit, linearize)
 
 
 def _to_float(raw: np.ndarray, path: str, srgb: bool, top: int | None = None,

@@ -14,7 +14,7 @@ INTENSITY_METHODS = ("none", "mean", "frontal", "semi_calibrated")
 PS_METHODS = ("l2", "l1", "barsky", "irls", "sbl", "semi_calibrated", "oren_nayar")
 INTEGRATION_METHODS = ("fc", "dct", "lsq", "bilateral", "auto")
 
-__all__ = ["add_bits_arg", "add_intensity_args", "add_light_args", "add_register_arg",
+__all__ = ["add_decoding_args", "add_intensity_args", "add_light_args", "add_register_arg",
            "calibrate_parser", "demo_parser", "reconstruct_parser", "relight_parser",
            "report_parser"]
 
@@ -65,14 +65,19 @@ def add_light_args(p, near=False) -> None:
                        help="with --light-positions: the size of a pixel at the subject, mm")
     p.add_argument("--ambient", help="ambient-only control frame to subtract; 'auto': the "
                    "file named *ambient* in each folder of frames (one per capture)")
-    add_bits_arg(p)
+    add_decoding_args(p)
 
 
-def add_bits_arg(p) -> None:
+def add_decoding_args(p) -> None:
+    """How the files' codes become radiance: `--bits` and `--linearize` (see `read_image`)."""
     p.add_argument("--bits", type=int, metavar="N",
                    help="the camera's bit depth, for 16-bit PNG/TIFF files that hold its codes "
                    "unscaled (e.g. 12: 4095 is full scale and saturated); PGM headers say it "
                    "themselves")
+    p.add_argument("--linearize", choices=("auto", "srgb", "none"), default="auto",
+                   help="auto (default): decode 8-bit PNG/JPEG files from sRGB, read PGM, TIFF "
+                   "and 16-bit files as linear; none: read every file as linear (a camera "
+                   "that writes its linear codes to 8-bit PNGs); srgb: decode every file")
 
 
 def reconstruct_parser(sub) -> None:
@@ -202,7 +207,7 @@ def calibrate_parser(sub) -> None:
                    "refines the centre and radius)")
     p.add_argument("--ambient", help="ambient-only frame to subtract; 'auto': the file named "
                    "*ambient* in the folder of frames")
-    add_bits_arg(p)
+    add_decoding_args(p)
     p.add_argument("--level", type=float, default=0.5,
                    help="a highlight is the pixels at or above LEVEL x the frame's brightest on "
                    "the sphere, weighted by their height above that level (default 0.5)")

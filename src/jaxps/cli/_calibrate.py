@@ -32,7 +32,8 @@ __all__ = ["calibrate", "run"]
 
 def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
               reference=None, board=None, board_mask=None, intensity_mask=None,
-              intensity_normal=None, board_normal=None, bits: int | None = None) -> dict:
+              intensity_normal=None, board_normal=None, bits: int | None = None,
+              linearize: str = "auto") -> dict:
     """Calibrate the lights from frames of a mirror sphere; write `lights.txt`,
     `calibration.json` and `calibration.png` to `out`; return the JSON's contents. With
     `board`, also the reference target's `intensity_ratios.txt`.
@@ -54,8 +55,9 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
       `intensity_ratios.txt` (`--intensity-ratios`). `intensity_normal`, `board_normal`: their
       normals (default facing the camera). `ambient`: a file is subtracted from the board's
       frames too; `"auto"` takes each folder's own.
-    - `bits`: the camera's bit depth, for files that hold its codes unscaled (`read_image`);
-      the sphere's, the board's and the ambient frames alike.
+    - `bits`, `linearize`: the camera's bit depth, for files that hold its codes unscaled,
+      and whether to decode the files from sRGB (`read_image`); the sphere's, the board's and
+      the ambient frames alike.
 
     **Raises:** `ValueError` naming the frames in which no highlight was found inside the
     sphere's outline (nothing is written then), or when the lights do not span 3-D;
@@ -81,7 +83,8 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
         if path is not None and not _is_auto(path) and not os.path.isfile(path):
             raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
     names = [os.path.basename(p) for p in paths]
-    images, _ = _frames(paths, ambient, bits)
+    codes = {"bits": bits, "linearize": linearize}
+    images, _ = _frames(paths, ambient, codes)
     silhouette = read_image(mask, linearize="none")
     if silhouette.ndim == 3:
         silhouette = silhouette.max(axis=-1)
@@ -131,7 +134,7 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
     ratios = None
     if board is not None:
         ratios = _board_ratios(board, board_ambient, lights, board_mask, intensity_mask,
-                               intensity_normal, board_normal, bits)
+                               intensity_normal, board_normal, codes)
         report["intensity_ratios"] = ratios
 
     os.makedirs(out, exist_ok=True)
@@ -154,17 +157,17 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
     return report
 
 
-def _frames(paths, ambient, bits):
-    """The frames at `paths` (`load_stack` at `bits`), `ambient` (a file, or None)
-    subtracted."""
-    images, saturated = load_stack(paths, bits=bits)
+def _frames(paths, ambient, codes):
+    """The frames at `paths` (`load_stack` with the options `codes`: `bits`, `linearize`),
+    `ambient` (a file, or None) subtracted."""
+    images, saturated = load_stack(paths, **codes)
     if ambient is not None:
-        images = _minus_ambient_file(images, ambient, bits=bits)
+        images = _minus_ambient_file(images, ambient, **codes)
     return images, saturated
 
 
 def _board_ratios(board, ambient, lights, board_mask, target_mask, target_normal,
-                  board_normal, bits) -> dict:
+                  board_normal, codes) -> dict:
     """`target_ratios` on the board's frames, and what they were measured on."""
     if isinstance(board, (str, os.PathLike)) and os.path.isdir(board):
         paths = list_frames(board)
@@ -178,7 +181,7 @@ def _board_ratios(board, ambient, lights, board_mask, target_mask, target_normal
     if len(paths) != len(lights):
         raise ValueError(f"board: {len(paths)} frames, but the sphere gave {len(lights)} "
                          "lights (one board frame per light, in the same order)")
-    images, saturated = _frames(paths, ambient, bits)
+    images, saturated = _frames(paths, ambient, codes)
     shape = images.shape[1:3]
     try:  # the board is target_ratios' subject
         ratios = target_ratios(images, lights, read_mask(target_mask, shape),
@@ -270,7 +273,7 @@ def run(args) -> int:
                        board=board, board_mask=args.board_mask,
                        intensity_mask=args.intensity_mask,
                        intensity_normal=args.intensity_normal, board_normal=args.board_normal,
-                       bits=args.bits)
+                       bits=args.bits, linearize=args.linearize)
     sphere = report["sphere"]
     print(f"calibrated {len(report['lights'])} lights on the mirror sphere (centre row "
           f"{sphere['centre_row']:.1f}, col {sphere['centre_col']:.1f}, radius "

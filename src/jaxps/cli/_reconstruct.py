@@ -14,6 +14,7 @@ import numpy as np
 
 from ..acquisition import list_frames, load_capture
 from ..acquisition._capture import MAX_SHIFT, _kept
+from ..acquisition._files import _decodes_srgb
 from ..core import Status, status_counts
 from ..core._progress import Stages
 from ..integration import integrate
@@ -63,6 +64,7 @@ def reconstruct(
     light_positions=None,
     pixel_size: float | None = None,
     bits: int | None = None,
+    linearize: str = "auto",
 ) -> dict:
     """Run the whole pipeline on files and write the outputs to `out`; returns the summary.
 
@@ -76,7 +78,9 @@ def reconstruct(
     `register`: undo motion between frames (see `load_capture`; the summary's `"motion"` holds
     the measured shifts and whether the frames were moved).
     `obj`, `points`: also write the textured OBJ and the point cloud (`write_meshes`).
-    `bits`: the camera's bit depth, for files that hold its codes unscaled (`load_capture`).
+    `bits`, `linearize`: the camera's bit depth, for files that hold its codes unscaled, and
+    whether to decode the files from sRGB (`load_capture`; the summary's `"srgb_decoded"`
+    says whether they were).
     `integration`: a `jaxps.INTEGRATION_METHODS` name; the default `"lsq"` integrates over
     the pixels solved, where `integrate`'s own default `"fc"` (the seeds' Frankot–Chellappa,
     which also runs inside `jit`) treats the image as periodic and bends a face's borders
@@ -102,7 +106,7 @@ def reconstruct(
                          intensities=intensities, crop_face=crop_face,
                          check_quality=check_quality, register=register,
                          intensity_mask=intensity_mask, intensity_normal=intensity_normal,
-                         intensity_ratios=intensity_ratios, bits=bits)
+                         intensity_ratios=intensity_ratios, bits=bits, linearize=linearize)
         if cap.lights is None:
             raise ValueError("no lights: give --lights FILE or --yale-names")
 
@@ -141,6 +145,7 @@ def reconstruct(
         "size": {"frames": len(cap.names), "height": int(cap.images.shape[1]),
                  "width": int(cap.images.shape[2]),
                  "channels": int(cap.images.shape[3]) if cap.images.ndim == 4 else 1},
+        "srgb_decoded": _srgb_decoded(frames, linearize),
         "crop": cap.crop,
         "gains": cap.gains.round(6).tolist(),
         "intensities": _intensities(cap, intensity_mask, intensity_normal, intensity_ratios),
@@ -370,6 +375,23 @@ def _light_check(cap) -> dict | None:
             "hollow": bool(c.hollow), "summary": c.summary()}
 
 
+def _srgb_decoded(frames, linearize) -> bool:
+    """Whether `load_capture` decoded the files `frames` (a folder or a list) from sRGB."""
+    if isinstance(frames, (str, os.PathLike)):
+        frames = list_frames(frames)
+    return _decodes_srgb(frames[0], linearize)
+
+
+def _srgb_line(decoded: bool, linearize: str) -> str | None:
+    """A line for a command's output when it decoded the frames from sRGB of its own accord:
+    a camera that writes linear codes to 8-bit PNGs gets wrong normals that way (more than
+    10 degrees off on a synthetic face, `tests/test_cli.py::test_linear_8bit_pngs`)."""
+    if not decoded or linearize != "auto":
+        return None
+    return ("8-bit PNG/JPEG frames read as sRGB and decoded to linear radiance; "
+            "--linearize none if the camera wrote linear codes")
+
+
 def _light_line(check: dict | None) -> str | None:
     """One line for the end of a command's output when `check_lights` flagged the lights."""
     if not check or not (check["mirrored"] or check["reordered"] or check["hollow"]):
@@ -398,7 +420,10 @@ def run(args) -> int:
         intensity_mask=args.intensity_mask, intensity_normal=args.intensity_normal,
         intensity_ratios=args.intensity_ratios,
         light_positions=args.light_positions, pixel_size=args.pixel_size, bits=args.bits,
+        linearize=args.linearize,
     )
+    if line := _srgb_line(summary["srgb_decoded"], args.linearize):
+        print("reconstruct: " + line)
     if summary["dropped_frames"]:
         print("reconstruct: " + _dropped_line(summary))
     if summary["motion"]["registered"]:
@@ -537,7 +562,8 @@ def _run_many(args) -> int:
                         intensities=args.intensities, register=args.register,
                         intensity_mask=args.intensity_mask,
                         intensity_normal=args.intensity_normal,
-                        intensity_ratios=args.intensity_ratios, bits=args.bits)
+                        intensity_ratios=args.intensity_ratios, bits=args.bits,
+                        linearize=args.linearize)
     results, rows = reconstruct_many(args.frames, method=args.method,
                                      check_quality=args.check_quality,
                                      light_positions=args.light_positions,
@@ -554,4 +580,8 @@ def _run_many(args) -> int:
     write_json(os.path.join(args.out, "summary.json"), {"captures": rows})
     write_csv(os.path.join(args.out, "summary.csv"), rows)
     print(summary_table(rows))
+    loaded = [f for f, row in zip(args.frames, rows) if row["frames"]]
+    if line := _srgb_line(any(_srgb_decoded(f, args.linearize) for f in loaded),
+                          args.linearize):
+        print("reconstruct: " + line)
     return 1 if any(r["error"] for r in rows) else 0

@@ -30,6 +30,8 @@ from ._reconstruct import (
     _near_capture,
     _near_summary,
     _positions,
+    _srgb_decoded,
+    _srgb_line,
 )
 
 __all__ = ["circle_lights", "relight_capture", "run"]
@@ -72,12 +74,14 @@ def relight_capture(
     light_positions=None,
     pixel_size: float | None = None,
     bits: int | None = None,
+    linearize: str = "auto",
 ) -> dict:
     """Fit `method` to a capture and write relit PNGs, `relight.gif` and `relight.json` to `out`.
 
     **Arguments:**
-    - `frames`, `lights`, `yale_names`, `ambient`, `mask`, `bits`: as for
-      `jaxps.acquisition.load_capture` (grey frames; colour frames are averaged to grey).
+    - `frames`, `lights`, `yale_names`, `ambient`, `mask`, `bits`, `linearize`: as for
+      `jaxps.acquisition.load_capture` (grey frames; colour frames are averaged to grey;
+      `"srgb_decoded"` in the summary says whether the files were decoded from sRGB).
     - `crop_face`: crop the frames to the detected face first, as `jaxps reconstruct
       --crop-face` does (`"crop"` in the summary: top, left, height, width); the relit
       images are of the crop.
@@ -126,7 +130,8 @@ def relight_capture(
                                mask=mask, crop_face=crop_face, check_quality=check_quality,
                                register=register, intensities=intensities,
                                intensity_mask=intensity_mask, intensity_normal=intensity_normal,
-                               intensity_ratios=intensity_ratios, bits=bits)
+                               intensity_ratios=intensity_ratios, bits=bits,
+                               linearize=linearize)
             if cap.lights is None:
                 raise ValueError("no lights: give --lights FILE or --yale-names")
             if positions is None:
@@ -187,6 +192,7 @@ def relight_capture(
     summary = {
         "frames": list(cap.names), "dropped_frames": list(cap.dropped),
         "dropped_why": _dropped_why(cap), "crop": cap.crop,
+        "srgb_decoded": _srgb_decoded(frames, linearize),
         "method": method,
         "intensities": _intensities(cap, intensity_mask, intensity_normal, intensity_ratios),
         "motion": _motion(cap),
@@ -220,7 +226,10 @@ def run(args) -> int:
         check_quality=args.check_quality, register=args.register,
         intensities=args.intensities, intensity_mask=args.intensity_mask,
         intensity_normal=args.intensity_normal, intensity_ratios=args.intensity_ratios,
-        light_positions=args.light_positions, pixel_size=args.pixel_size, bits=args.bits)
+        light_positions=args.light_positions, pixel_size=args.pixel_size, bits=args.bits,
+        linearize=args.linearize)
+    if line := _srgb_line(s["srgb_decoded"], args.linearize):
+        print("relight: " + line)
     if s["dropped_frames"]:
         print("relight: " + _dropped_line(s))
     if "target" in s["intensities"]:
