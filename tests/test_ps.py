@@ -308,6 +308,9 @@ def test_works_under_jit_and_vmap_over_captures():
         (dict(images=np.zeros((5, 4, 4), np.uint8)), "floating point"),
         (dict(images=np.zeros((5, 4), np.float32)), r"\(K, H, W\)"),
         (dict(lights=np.eye(3, dtype=np.float32)), "K=5 frames but lights have 3"),
+        # frames on the last axis, as some loaders stack them: the error says which axis
+        (dict(images=np.zeros((4, 6, 5), np.float32)),
+         r"K=4 frames but lights have 5 rows; images look like \(H, W, K\)"),
         (dict(images=np.zeros((2, 4, 4), np.float32),
               lights=np.eye(3, dtype=np.float32)[:2]), "at least 3"),
         (dict(lights=np.zeros((5, 4, 4, 2), np.float32)), r"\(K, 3\) or \(K, H, W, 3\)"),

@@ -157,6 +157,17 @@ def save_lights(path: str | os.PathLike, lights: Float[ArrayLike, "K 3"], *,
         f.write(f"{head}{len(lights)}\n{rows}")
 
 
+def frame_count_error(images_shape: tuple[int, ...], n_lights: int) -> ValueError:
+    """The error for `images` of `images_shape` (frames first) and `n_lights` lights that
+    disagree in number; it says how to fix images whose frames lie on the last axis."""
+    hint = ""
+    if images_shape[-1] == n_lights:
+        hint = ("; images look like (H, W, K): put the frame axis first "
+                "(np.moveaxis(images, -1, 0))")
+    return ValueError(f"images have K={images_shape[0]} frames but lights have {n_lights} "
+                      f"rows{hint}")
+
+
 def validate_lights(lights: Float[ArrayLike, "K 3"]) -> Float[np.ndarray, "K 3"]:
     """Check a light set and return it unit-normalised as float32.
 

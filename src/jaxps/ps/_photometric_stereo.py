@@ -28,7 +28,7 @@ from ..core._host import (
 from ..core._kept import _SINGLE, KEEP_FROM_BYTES, keep, keep_bytes, result_specs, spare_outputs
 from ..core._store import active as store_active
 from ..core._store import call as stored_call
-from ..lights._directions import validate_lights
+from ..lights._directions import frame_count_error, validate_lights
 from ._l2 import PSResult, host_constants, l2_branch, working_dtype
 
 __all__ = ["PS_METHODS", "photometric_stereo"]
@@ -252,7 +252,7 @@ def photometric_stereo(
             f"{tuple(images.shape[:3])}, got {lights_shape}"
         )
     if lights_shape[0] != k:
-        raise ValueError(f"images have K={k} frames but lights have {lights_shape[0]} rows")
+        raise frame_count_error(images.shape, lights_shape[0])
     if k < 3:
         raise ValueError(f"photometric stereo needs at least 3 images, got K={k}")
     if mask is not None and np.shape(mask) != (h, w):

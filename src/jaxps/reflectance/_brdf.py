@@ -80,6 +80,7 @@ from threadpoolctl import threadpool_limits
 from ..core._elementwise import tanh as _tanh
 from ..core._host import CpuTuned
 from ..core._random import as_key
+from ..lights._directions import frame_count_error
 from . import _parametric
 from ._auto import fit_auto, lolo_folds
 from ._features import (
@@ -347,7 +348,7 @@ def _check_inputs(images, normals, albedo, lights, mask):
     albedo = _check_albedo(albedo, (h, w), dtype)
     lights = _check_lights(lights, dtype, (h, w))
     if lights.shape[0] != k:
-        raise ValueError(f"images have K={k} frames but lights have {lights.shape[0]} rows")
+        raise frame_count_error(images.shape, lights.shape[0])
     if mask is None:
         mask = np.ones((h, w), bool)
     mask = np.asarray(mask)

@@ -19,6 +19,7 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
+from ..lights._directions import frame_count_error
 from ._brdf import BRDFModel, _check_images, _check_lights, extrapolation_mask, relight
 from ._features import usable_normals
 
@@ -117,7 +118,7 @@ def score_relighting(
         raise ValueError(f"scale must be a positive number, got {scale!r}")
     unit = np.asarray(_check_lights(lights, np.float32, (h, w)), np.float64)
     if unit.shape[0] != k:
-        raise ValueError(f"images have K={k} frames but lights have {unit.shape[0]} rows")
+        raise frame_count_error(obs.shape, unit.shape[0])
     sel = np.ones((h, w), bool) if mask is None else np.asarray(mask, bool)
     if sel.shape != (h, w):
         raise ValueError(f"mask must have shape (H, W) = {(h, w)}, got {sel.shape}")
