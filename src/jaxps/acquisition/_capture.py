@@ -213,7 +213,10 @@ def load_capture(
     else:
         light_array = validate_lights(lights)
     if light_array is not None and len(light_array) != len(paths):
-        raise ValueError(f"{len(paths)} frames but {len(light_array)} lights")
+        source = (f" in {os.fspath(lights)}" if isinstance(lights, (str, os.PathLike))
+                  else "")
+        raise ValueError(f"lights: {len(paths)} frames but {len(light_array)} lights{source} "
+                         "(one light per frame, in the frames' order)")
 
     if ambient is not None:
         images = _minus_ambient_file(images, ambient, linearize=linearize, bits=bits)
