@@ -536,6 +536,12 @@ def test_srgb_decoding_matches_colour_science():
     v = np.linspace(0, 1, 1001, dtype=np.float32)
     np.testing.assert_allclose(srgb_to_linear(v), colour.cctf_decoding(v, function="sRGB"),
                                rtol=1e-6, atol=1e-7)
+    # and its inverse, which `jaxps relight` writes sRGB frames' relit images with
+    from jaxps.acquisition._files import linear_to_srgb
+
+    np.testing.assert_allclose(linear_to_srgb(v), colour.cctf_encoding(v, function="sRGB"),
+                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(linear_to_srgb(srgb_to_linear(v)), v, atol=1e-6)
 
 
 def test_bucket_box_grows_about_the_centre_within_the_image():

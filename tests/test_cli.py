@@ -364,6 +364,32 @@ def test_linear_8bit_pngs(tmp_path, capsys):
     assert errors["none"] < 1.5 and errors["auto"] > 10, errors
 
 
+def test_relit_images_of_srgb_frames_are_srgb(tmp_path):
+    # 8-bit sRGB PNGs, decoded on load: the relit PNG is encoded back, so that it reads as
+    # the truth through the same decoding (a linear PNG would look darker than the frames).
+    from jaxps import synthetic
+    from jaxps.acquisition._files import linear_to_srgb, srgb_to_linear
+
+    surface = synthetic.face_like(96, 80)
+    scene = synthetic.render_scene(surface, synthetic.scanner_lights(25.0))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, img in enumerate(np.asarray(scene.images)):
+        cv2.imwrite(str(frames / f"f{k}.png"), np.round(linear_to_srgb(img) * 255).astype(np.uint8))
+    np.savetxt(frames / "lights.txt", np.asarray(scene.lights))
+    assert main(["relight", str(frames), "--lights", str(frames / "lights.txt"), "--method",
+                 "lambertian", "--no-register", "--light=30,10", "--circle-frames", "1",
+                 "--out", str(tmp_path / "relit")]) == 0
+    summary = json.loads((tmp_path / "relit" / "relight.json").read_text())
+    assert summary["srgb_decoded"] and summary["png_encoding"] == "srgb"
+    relit = cv2.imread(str(tmp_path / "relit" / "relit_A+030E+10.png"), cv2.IMREAD_UNCHANGED)
+    got = srgb_to_linear(relit / 255.0) * summary["png_scale"]
+    new = np.asarray(jaxps.lights_from_angles([30.0], [10.0]))[0]
+    truth = np.asarray(scene.albedo) * np.maximum(np.asarray(surface.normals) @ new, 0)
+    inside = np.asarray(surface.mask) & (truth < 0.9 * summary["png_scale"])
+    assert np.median(np.abs(got - truth)[inside]) < 0.01
+
+
 def test_linearize_reaches_every_frame_reading_command(tmp_path, monkeypatch):
     # relight and calibrate pass --linearize on to the reader (stopped there: no fit runs).
     from jaxps.cli import _calibrate, _relight

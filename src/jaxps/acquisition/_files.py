@@ -189,6 +189,14 @@ def srgb_to_linear(v: np.ndarray) -> np.ndarray:
                     ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
 
 
+def linear_to_srgb(v: np.ndarray) -> np.ndarray:
+    """The sRGB encoding curve, the inverse of `srgb_to_linear`, for images written to be
+    looked at (`colour.cctf_encoding(v, function="sRGB")`)."""
+    v = np.clip(np.asarray(v, np.float32), 0, None)
+    return np.where(v <= 0.0031308, 12.92 * v,
+                    1.055 * v ** (1 / 2.4) - 0.055).astype(np.float32)
+
+
 def load_stack(
     paths: Sequence[PathLike], *, linearize: str = "auto", bits: int | None = None
 ) -> tuple[Float[np.ndarray, "K H W *C"], Bool[np.ndarray, "K H W"]]:

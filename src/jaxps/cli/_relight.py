@@ -12,6 +12,7 @@ import os
 import numpy as np
 
 from ..acquisition import load_capture
+from ..acquisition._files import linear_to_srgb
 from ..core._progress import Stages
 from ..lights import lights_from_angles
 from ..ps import near_photometric_stereo, photometric_stereo
@@ -45,8 +46,11 @@ def circle_lights(n: int, zenith_deg: float) -> np.ndarray:
                      np.full(n, np.cos(z))], -1).astype(np.float32)
 
 
-def _to_8bit(img: np.ndarray, scale: float) -> np.ndarray:
-    return np.round(np.clip(img / scale, 0, 1) * 255).astype(np.uint8)
+def _to_8bit(img: np.ndarray, scale: float, srgb: bool) -> np.ndarray:
+    """`img / scale` as 8-bit codes, sRGB-encoded when the frames were decoded from sRGB (so
+    that a relit image looks like the photographs it was fitted to), else linear."""
+    v = np.clip(img / scale, 0, 1)
+    return np.round((linear_to_srgb(v) if srgb else v) * 255).astype(np.uint8)
 
 
 def relight_capture(
@@ -108,6 +112,10 @@ def relight_capture(
       distant light as bright as a lamp is at the origin. `relight.json` holds
       `"near_lights"`.
 
+    The PNGs and the GIF are scaled so that the frames' 99.5th percentile in the mask is full
+    scale (`"png_scale"`), and sRGB-encoded when the frames were decoded from sRGB, so that
+    they look like the photographs, else linear (`"png_encoding"`).
+
     **Returns:** the summary written to `relight.json` (fit report, files, timings).
     """
     import jax
@@ -166,6 +174,7 @@ def relight_capture(
         ps, near, fit_mask, model = stages.run(f"fit {method}", fit, time_key="fit")
         os.makedirs(out, exist_ok=True)
         scale = float(np.percentile(images[:, fit_mask], 99.5)) or 1.0
+        srgb = _srgb_decoded(frames, linearize)
 
         def render():
             files = []
@@ -175,11 +184,11 @@ def relight_capture(
                                            lights_from_angles(az, el), mask=fit_mask))
                 for (a, e), img in zip(new_lights, relit):
                     name = f"relit_A{a:+04.0f}E{e:+03.0f}.png"
-                    Image.fromarray(_to_8bit(img, scale)).save(os.path.join(out, name))
+                    Image.fromarray(_to_8bit(img, scale, srgb)).save(os.path.join(out, name))
                     files.append(name)
             circle = circle_lights(circle_frames, circle_zenith_deg)
             anim = np.asarray(relight(model, ps.normals, ps.albedo, circle, mask=fit_mask))
-            frames_8 = [Image.fromarray(_to_8bit(img, scale)) for img in anim]
+            frames_8 = [Image.fromarray(_to_8bit(img, scale, srgb)) for img in anim]
             frames_8[0].save(os.path.join(out, "relight.gif"), save_all=True,
                              append_images=frames_8[1:], duration=80, loop=0)
             return [*files, "relight.gif"]
@@ -192,7 +201,7 @@ def relight_capture(
     summary = {
         "frames": list(cap.names), "dropped_frames": list(cap.dropped),
         "dropped_why": _dropped_why(cap), "crop": cap.crop,
-        "srgb_decoded": _srgb_decoded(frames, linearize),
+        "srgb_decoded": srgb,
         "method": method,
         "intensities": _intensities(cap, intensity_mask, intensity_normal, intensity_ratios),
         "motion": _motion(cap),
@@ -200,6 +209,7 @@ def relight_capture(
         "fit": fit,
         "fit_rmse_gray_8bit": fit["rmse"] * 255,
         "mask_pixels": int(fit_mask.sum()), "png_scale": scale,
+        "png_encoding": "srgb" if srgb else "linear",
         "circle_zenith_deg": circle_zenith_deg, "files": files,
         "timings_s": {k: round(v, 3) for k, v in stages.times.items()},
         "note": "timings include JIT compilation",
