@@ -194,6 +194,25 @@ def test_folder_ambient_auto_and_unused_ambient_named(tmp_path, caplog):
         acq.load_capture(tmp_path, ambient="auto", **kw)
 
 
+def test_folder_lights_auto(tmp_path):
+    # lights="auto" takes the folder's own lights file, as ambient="auto" its ambient frame.
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        cv2.imwrite(str(tmp_path / f"f{k}.pgm"), rng.integers(60, 250, (6, 5), dtype=np.uint8))
+    lights = np.array([[0, 0, 1], [0.6, 0, 0.8], [0, 0.6, 0.8]])
+    np.savetxt(tmp_path / "Lights.txt", lights)
+    kw = {"intensities": "none", "check_quality": False, "register": False}
+    auto = acq.load_capture(tmp_path, lights="auto", **kw)
+    np.testing.assert_allclose(auto.lights, lights, atol=1e-6)
+    with pytest.raises(ValueError, match="lights='auto' takes the lights file from a folder"):
+        acq.load_capture(sorted(tmp_path.glob("f*.pgm")), lights="auto", **kw)
+    (tmp_path / "lights_old.txt").write_text("0 0 1\n")
+    with pytest.raises(ValueError, match=r"expected one \.txt file .*Lights.txt.*lights_old"):
+        acq.load_capture(tmp_path, lights="auto", **kw)
+    with pytest.raises(FileNotFoundError, match="lights file not found: .*nope.txt"):
+        acq.load_capture(tmp_path, lights=tmp_path / "nope.txt", **kw)
+
+
 def test_load_capture_divides_out_frame_intensities(tmp_path):
     """Frames of a sphere cap (mean normal on the view axis, no shadows) under flashes of known
     strength: the default ("frontal") recovers them, "none" keeps the frames as read, and the

@@ -633,3 +633,39 @@ def test_cli_many_folders_each_subtracts_its_own_ambient(tmp_path):
 
     assert error("auto", "low") < 0.5 and error("auto", "high") < 0.5
     assert error("as_read", "high") > 5  # the ambient light left in bends the normals
+
+
+def test_cli_many_folders_each_takes_its_own_lights(tmp_path, capsys):
+    # Two rigs (lamps at 20 and 30 degrees), one folder each with its own lights.txt:
+    # `--lights auto` solves each with its own; one shared file would bend the other's normals.
+    import cv2
+
+    from jaxps.cli import main
+    from jaxps.report._writers import read_normal_map
+
+    folders, scenes = [], {}
+    for name, zenith in (("rig20", 20.0), ("rig30", 30.0)):
+        scenes[name] = scene = face_scene(48, lights=jaxps.synthetic.scanner_lights(zenith))
+        folder = tmp_path / name
+        folder.mkdir()
+        folders.append(str(folder))
+        for i, f in enumerate(np.asarray(scene.images)):
+            cv2.imwrite(str(folder / f"f{i}.png"), np.round(f * 65535).astype(np.uint16))
+        np.savetxt(folder / "lights.txt", np.asarray(scene.lights))
+    argv = ["reconstruct", *folders, "--intensities", "none", "--no-register", "--out"]
+    assert main([*argv, str(tmp_path / "auto"), "--lights", "auto"]) == 0
+    assert main([*argv, str(tmp_path / "shared"), "--lights",
+                 str(tmp_path / "rig20" / "lights.txt")]) == 0
+
+    def error(run, name):
+        normals = read_normal_map(tmp_path / run / name / "normals.png")
+        err = np.asarray(jaxps.angular_error(normals, scenes[name].normals))
+        return float(np.median(err[np.asarray(scenes[name].mask)]))
+
+    assert error("auto", "rig20") < 0.1 and error("auto", "rig30") < 0.1
+    assert error("shared", "rig30") > 3
+    # a folder without one is named in its row; the others are solved
+    (tmp_path / "rig30" / "lights.txt").rename(tmp_path / "rig30" / "calibration.dat")
+    capsys.readouterr()
+    assert main([*argv, str(tmp_path / "missing"), "--lights", "auto"]) == 1
+    assert "expected one .txt file whose name contains 'light'" in capsys.readouterr().out

@@ -110,15 +110,17 @@ def load_capture(
 
     **Arguments:**
     - `frames`: a folder (see `list_frames`) or a list of frame files.
-    - `lights`: a `lights.txt` path or a `(K, 3)` array; or `yale_names=True` to parse
-      Yale-B-style names (`..._P00A+035E+15.pgm`).
+    - `lights`: a `lights.txt` path or a `(K, 3)` array; `"auto"` (with a folder of frames):
+      the one `.txt` file in the folder whose name contains "light", so that each capture of
+      a batch (`jaxps reconstruct DIR1 DIR2 ... --lights auto`) takes its own calibration; or
+      `yale_names=True` to parse Yale-B-style names (`..._P00A+035E+15.pgm`).
     - `ambient`: the ambient-only control frame, subtracted from every frame and clipped at 0;
       `"auto"` (with a folder of frames): the one file in the folder whose name contains
       "ambient", so that each capture of a batch (`jaxps reconstruct DIR1 DIR2 ...
       --ambient auto`) subtracts its own. A folder's ambient frame is never used unasked:
       without `ambient`, a warning names it.
-    - `mask`: a mask image path, a `(H, W)` bool array, `"auto"` (Otsu on the mean image), or
-      None (every pixel).
+    - `mask`: a mask image path, a `(H, W)` bool array, `"auto"` (`mask_from_intensity`: the
+      mean frame above 5% of its 99th percentile, the largest region), or None (every pixel).
     - `intensities`: how each frame's flash strength is estimated and divided out, one of
       `jaxps.INTENSITY_METHODS` (see `jaxps.intensity_estimate`, estimated over the mask):
       `"frontal"` (default: mean equalisation corrected for each light's obliquity; `"mean"`
@@ -177,15 +179,18 @@ def load_capture(
     if isinstance(frames, (str, os.PathLike)):
         paths = list_frames(frames)
         ambient = _folder_ambient(frames, ambient)
+        if _is_auto(lights):
+            lights = _folder_lights(frames)
     else:
-        if _is_auto(ambient):
-            raise ValueError("ambient='auto' takes the ambient frame from a folder of frames; "
-                             "with a list of files, give the ambient file")
+        for what, given in (("ambient", ambient), ("lights", lights)):
+            if _is_auto(given):
+                raise ValueError(f"{what}='auto' takes the {what} file from a folder of "
+                                 f"frames; with a list of files, give the {what} file")
         paths = [os.fspath(p) for p in frames]
         if not paths:
             raise ValueError("frames: empty list of files")
     # Named before any frame is read: a missing file otherwise reads as a missing frame.
-    for what, path in (("ambient frame", ambient), ("mask", mask),
+    for what, path in (("lights file", lights), ("ambient frame", ambient), ("mask", mask),
                        ("intensity mask", intensity_mask), ("intensity ratios", intensity_ratios)):
         if (isinstance(path, (str, os.PathLike)) and not _is_auto(path)
                 and not os.path.isfile(path)):
@@ -521,6 +526,17 @@ def _folder_ambient(folder, ambient):
             "load_capture: %s holds an ambient frame (%s) that is not subtracted; pass "
             "ambient='auto' (--ambient auto) to use it", os.fspath(folder), ", ".join(found))
     return ambient
+
+
+def _folder_lights(folder):
+    """`lights="auto"` for a folder capture: its one `.txt` file whose name contains
+    "light"."""
+    found = sorted(n for n in os.listdir(folder)
+                   if "light" in n.lower() and n.lower().endswith(".txt"))
+    if len(found) != 1:
+        raise ValueError(f"lights='auto': expected one .txt file whose name contains 'light' in "
+                         f"{os.fspath(folder)}, found {found or 'none'}")
+    return os.path.join(folder, found[0])
 
 
 def _is_auto(ambient):

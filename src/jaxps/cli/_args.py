@@ -53,7 +53,9 @@ def add_light_args(p, near=False) -> None:
     """The options every frame-reading subcommand shares: where lights come from, ambient;
     with `near`, also near point lights (`--light-positions`, `--pixel-size`)."""
     g = p.add_mutually_exclusive_group(required=True)
-    g.add_argument("--lights", help="lights.txt: optional count line, then 'x y z' per frame")
+    g.add_argument("--lights", help="lights.txt: optional count line, then 'x y z' per frame; "
+                   "'auto': the .txt file named *light* in each folder of frames (one per "
+                   "capture)")
     g.add_argument("--yale-names", action="store_true",
                    help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
     if near:
