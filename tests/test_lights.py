@@ -43,7 +43,9 @@ def test_load_shared_psm_lights(data):
     "text, match",
     [
         ("4\n0 0 1\n1 0 1\n0 1 1\n", "header says 4"),
-        ("0 0 1\n1 0\n", "3 numbers"),
+        ("0 0 1\n1 0\n", r"3 numbers per line \(x y z\), got \['1', '0'\]$"),
+        # azimuth and elevation, as a rig's drawing gives them: the error says how to convert
+        ("0 0\n25 0\n-25 0\n", r"look like angles: .*jaxps.lights_from_angles"),
         ("0 0 1\n1 0 x\n0 1 1\n", "cannot parse"),
         ("0 0 1\n1 0 1\n", "at least 3"),
         ("0 0 1\n1 0 1\n2 0 2\n", "condition number"),

@@ -131,7 +131,11 @@ def _read_xyz(path: str, label: str) -> np.ndarray:
         count = rows.pop(0)[0]
     bad = [r for r in rows if len(r) != 3]
     if bad:
-        raise ValueError(f"{label} {path}: expected 3 numbers per line, got {bad[0]}")
+        hint = ("; two numbers a line look like angles: write the directions with "
+                "jaxps.save_lights(path, jaxps.lights_from_angles(azimuths, elevations))"
+                if label == "lights file" and all(len(r) == 2 for r in rows) else "")
+        raise ValueError(f"{label} {path}: expected 3 numbers per line (x y z), got "
+                         f"{bad[0]}{hint}")
     try:
         count = None if count is None else int(count)
         data = np.array([[float(v) for v in r] for r in rows], dtype=np.float64).reshape(-1, 3)
