@@ -194,6 +194,40 @@ def test_folder_ambient_auto_and_unused_ambient_named(tmp_path, caplog):
         acq.load_capture(tmp_path, ambient="auto", **kw)
 
 
+def test_multi_page_tiff_stands_for_its_pages(tmp_path):
+    # A high-speed camera may write a capture as one multi-page TIFF: its pages are the frames
+    # (named page by page), and "stack.tif[5]" names one page, here the ambient frame. The
+    # same frames as separate files load the same.
+    from helpers import face_scene
+
+    scene = face_scene(48)
+    ambient = np.full(scene.mask.shape, 0.1, np.float32)
+    pages = [np.round(np.clip(f + ambient, 0, 1) * 65535).astype(np.uint16)
+             for f in np.asarray(scene.images)] + [np.round(ambient * 65535).astype(np.uint16)]
+    stack = tmp_path / "stack.tif"
+    assert cv2.imwritemulti(str(stack), pages)
+    for i, page in enumerate(pages):
+        cv2.imwrite(str(tmp_path / f"f{i}.tif"), page)
+    kw = {"lights": np.asarray(scene.lights), "intensities": "none", "register": False}
+    cap = acq.load_capture([f"{stack}[{i}]" for i in range(5)], ambient=f"{stack}[5]", **kw)
+    files = acq.load_capture([tmp_path / f"f{i}.tif" for i in range(5)],
+                             ambient=tmp_path / "f5.tif", **kw)
+    np.testing.assert_array_equal(cap.images, files.images)
+    assert cap.names == tuple(f"stack.tif[{i}]" for i in range(5))
+    # the whole file, alone or in a folder, is its six pages
+    (tmp_path / "stack").mkdir()
+    stack.rename(tmp_path / "stack" / "stack.tif")
+    stack = tmp_path / "stack" / "stack.tif"
+    assert acq.list_frames(tmp_path / "stack") == [f"{stack}[{i}]" for i in range(6)]
+    six = acq.load_capture(stack, lights=np.vstack([scene.lights, [[0, 0, 1]]]),
+                           check_quality=False, intensities="none", register=False)
+    assert len(six.names) == 6 and six.names[5] == "stack.tif[5]"
+    with pytest.raises(ValueError, match=r"stack.tif\[6\]: .*stack.tif has 6 page"):
+        acq.read_image(f"{stack}[6]")
+    with pytest.raises(FileNotFoundError, match="ambient frame not found: .*nope.tif"):
+        acq.load_capture(stack, lights=np.eye(3), ambient=tmp_path / "nope.tif[1]")
+
+
 def test_folder_lights_auto(tmp_path):
     # lights="auto" takes the folder's own lights file, as ambient="auto" its ambient frame.
     rng = np.random.default_rng(0)

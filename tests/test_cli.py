@@ -390,6 +390,31 @@ def test_relit_images_of_srgb_frames_are_srgb(tmp_path):
     assert np.median(np.abs(got - truth)[inside]) < 0.01
 
 
+def test_reconstruct_pages_of_a_multi_page_tiff(tmp_path, capsys):
+    # `jaxps reconstruct stack.tif[0] ... stack.tif[4] --ambient stack.tif[5]`: a high-speed
+    # camera's capture in one file, the ambient frame its last page.
+    from jaxps import synthetic
+
+    surface = synthetic.face_like(64, 56)
+    scene = synthetic.render_scene(surface, synthetic.scanner_lights(25.0))
+    pages = [np.round((0.8 * f + 0.1) * 65535).astype(np.uint16)
+             for f in np.asarray(scene.images)]
+    stack = tmp_path / "stack.tif"
+    assert cv2.imwritemulti(str(stack), [*pages, np.full(pages[0].shape, 6554, np.uint16)])
+    np.savetxt(tmp_path / "lights.txt", np.asarray(scene.lights))
+    # equal flashes: "none" (at this size the default pattern's albedo is brighter on one
+    # side, which the frontal estimate reads as a brighter flash)
+    assert main(["reconstruct", *(f"{stack}[{i}]" for i in range(5)), "--ambient",
+                 f"{stack}[5]", "--lights", str(tmp_path / "lights.txt"), "--intensities",
+                 "none", "--out", str(tmp_path / "out")]) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["frames"] == [f"stack.tif[{i}]" for i in range(5)]
+    ok = (np.load(tmp_path / "out" / "status.npy") == 0) & np.asarray(surface.mask)
+    err = np.asarray(jaxps.angular_error(read_normal_map(tmp_path / "out" / "normals.png"),
+                                         surface.normals))
+    assert ok.sum() > 0.9 * np.asarray(surface.mask).sum() and np.median(err[ok]) < 0.05
+
+
 def test_linearize_reaches_every_frame_reading_command(tmp_path, monkeypatch):
     # relight and calibrate pass --linearize on to the reader (stopped there: no fit runs).
     from jaxps.cli import _calibrate, _relight

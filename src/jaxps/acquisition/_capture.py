@@ -22,7 +22,16 @@ from ..lights._directions import lights_from_angles, load_lights, parse_yale_nam
 from ..ps._intensities import INTENSITY_METHODS, intensity_estimate
 from ..ps._photometric_stereo import photometric_stereo
 from ._face import bucket_box, crop, detect_face
-from ._files import FRAME_EXTENSIONS, PathLike, list_frames, load_stack, read_image, read_mask
+from ._files import (
+    FRAME_EXTENSIONS,
+    PathLike,
+    _exists,
+    _frame_paths,
+    list_frames,
+    load_stack,
+    read_image,
+    read_mask,
+)
 from ._quality import QualityReport, flag_inconsistent, only_inconsistent, screen_capture
 from ._register import _shift, estimate_shifts
 from ._stack import _lit_level, _subtract_ambient, mask_from_intensity
@@ -109,7 +118,9 @@ def load_capture(
     """Load a capture: frames, lights, ambient subtraction, face crop, mask, intensities.
 
     **Arguments:**
-    - `frames`: a folder (see `list_frames`) or a list of frame files.
+    - `frames`: a folder (see `list_frames`), a list of frame files, or one multi-page TIFF
+      file; a multi-page TIFF stands for its pages (named `stack.tif[0]`, `stack.tif[1]`,
+      ...), and one page is given as such a name (`ambient="stack.tif[5]"`).
     - `lights`: a `lights.txt` path or a `(K, 3)` array; `"auto"` (with a folder of frames):
       the one `.txt` file in the folder whose name contains "light", so that each capture of
       a batch (`jaxps reconstruct DIR1 DIR2 ... --lights auto`) takes its own calibration; or
@@ -176,7 +187,7 @@ def load_capture(
     if intensity_ratios is not None and intensity_mask is None:
         raise ValueError("intensity_ratios scale the flash strengths measured on a reference "
                          "target: they need intensity_mask")
-    if isinstance(frames, (str, os.PathLike)):
+    if isinstance(frames, (str, os.PathLike)) and os.path.isdir(frames):
         paths = list_frames(frames)
         ambient = _folder_ambient(frames, ambient)
         if _is_auto(lights):
@@ -185,15 +196,14 @@ def load_capture(
         for what, given in (("ambient", ambient), ("lights", lights)):
             if _is_auto(given):
                 raise ValueError(f"{what}='auto' takes the {what} file from a folder of "
-                                 f"frames; with a list of files, give the {what} file")
-        paths = [os.fspath(p) for p in frames]
+                                 f"frames; with files, give the {what} file")
+        paths = _frame_paths(frames)
         if not paths:
             raise ValueError("frames: empty list of files")
     # Named before any frame is read: a missing file otherwise reads as a missing frame.
     for what, path in (("lights file", lights), ("ambient frame", ambient), ("mask", mask),
                        ("intensity mask", intensity_mask), ("intensity ratios", intensity_ratios)):
-        if (isinstance(path, (str, os.PathLike)) and not _is_auto(path)
-                and not os.path.isfile(path)):
+        if isinstance(path, (str, os.PathLike)) and not _is_auto(path) and not _exists(path):
             raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
     names = tuple(os.path.basename(p) for p in paths)
     ratios = None if intensity_ratios is None else _ratios(intensity_ratios, len(paths))

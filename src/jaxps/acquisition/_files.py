@@ -3,8 +3,9 @@
 Intensities follow DESIGN.md: 8-bit / 255, 16-bit / 65535, linear in radiance; gamma-encoded
 sources (8-bit PNG/JPEG by default) are decoded from sRGB. Two refinements of the full scale: a
 PGM or PPM is divided by the maxval of its header, and `bits=` names a camera's bit depth
-for files that hold, say, 12-bit codes in 16-bit pixels. OpenCV is imported on the first
-read.
+for files that hold, say, 12-bit codes in 16-bit pixels. A multi-page TIFF, as a high-speed
+camera may write a capture, stands for its pages, each named as `stack.tif[2]` (page 2,
+counted from 0). OpenCV is imported on the first read.
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ FRAME_EXTENSIONS = (".pgm", ".ppm", ".png", ".tif", ".tiff")
 _SRGB_EXTENSIONS = (".png", ".jpg", ".jpeg")
 # Files in a frame folder whose names contain these words are not frames.
 _NOT_FRAMES = re.compile(r"mask|ambient", re.IGNORECASE)
+# A page of a multi-page TIFF: "stack.tif[2]".
+_PAGE = re.compile(r"^(?P<file>.+\.tiff?)\[(?P<page>\d+)\]$", re.IGNORECASE)
 
 PathLike = str | os.PathLike
 
@@ -37,7 +40,8 @@ def _natural_key(name: str):
 def list_frames(folder: PathLike) -> list[str]:
     """Frame files in `folder` (PGM/PPM/PNG/TIFF), in natural order (``x.2`` before ``x.10``).
 
-    Files whose names contain "mask" or "ambient" are skipped: pass those explicitly.
+    Files whose names contain "mask" or "ambient" are skipped: pass those explicitly. A
+    multi-page TIFF stands for its pages, in order (``stack.tif[0]``, ``stack.tif[1]``, ...).
 
     **Raises:** `FileNotFoundError` if `folder` does not exist or holds no frame file.
     """
@@ -52,7 +56,44 @@ def list_frames(folder: PathLike) -> list[str]:
         raise FileNotFoundError(
             f"no frame files ({', '.join(FRAME_EXTENSIONS)}) in folder {folder}"
         )
-    return [os.path.join(folder, n) for n in sorted(names, key=_natural_key)]
+    return [p for n in sorted(names, key=_natural_key) for p in _pages(os.path.join(folder, n))]
+
+
+def _frame_paths(frames) -> list[str]:
+    """The frames of `frames`: a folder (`list_frames`), one file or a list of files, each
+    multi-page TIFF file standing for its pages (`_pages`)."""
+    if isinstance(frames, (str, os.PathLike)):
+        if os.path.isdir(frames):
+            return list_frames(frames)
+        frames = [frames]
+    return [p for f in frames for p in _pages(os.fspath(f))]
+
+
+def _pages(path: str) -> list[str]:
+    """`[path]`, or for a TIFF file of several pages one `"path[i]"` per page."""
+    if not (path.lower().endswith((".tif", ".tiff")) and os.path.isfile(path)):
+        return [path]
+    import cv2
+
+    try:
+        n = cv2.imcount(path)
+    except cv2.error:  # not a TIFF OpenCV can read: named by the read
+        return [path]
+    return [path] if n <= 1 else [f"{path}[{i}]" for i in range(n)]
+
+
+def _split_page(path: str) -> tuple[str, int | None]:
+    """`(file, page)` of a frame path: `"stack.tif[2]"` is page 2 of `stack.tif` (when no file
+    has that whole name), any other path the file itself (page None)."""
+    match = _PAGE.match(path)
+    if match is None or os.path.isfile(path):
+        return path, None
+    return match["file"], int(match["page"])
+
+
+def _exists(path: PathLike) -> bool:
+    """Whether the file of a frame path (`_split_page`) exists."""
+    return os.path.isfile(_split_page(os.fspath(path))[0])
 
 
 def read_image(path: PathLike, *, linearize: str = "auto",
@@ -66,7 +107,7 @@ def read_image(path: PathLike, *, linearize: str = "auto",
     4095 reads as 1 (saturated), not 0.0625.
 
     **Arguments:**
-    - `path`: the file.
+    - `path`: the file; `"stack.tif[2]"` is page 2 (from 0) of a multi-page TIFF.
     - `linearize`: `"auto"` decodes 8-bit PNG/JPEG from sRGB and leaves PGM/TIFF and 16-bit
       files linear; `"srgb"` always decodes; `"none"` never does.
     - `bits`: the camera's bit depth, for integer files that hold its codes unscaled (a 12-bit
@@ -121,14 +162,23 @@ def _decode(path: PathLike, linearize: str,
     if linearize not in ("auto", "srgb", "none"):
         raise ValueError(f"linearize must be 'auto', 'srgb' or 'none', got {linearize!r}")
     _check_bits(bits)
-    if not os.path.isfile(path):
+    file, page = _split_page(path)
+    if not os.path.isfile(file):
         raise FileNotFoundError(f"frame not found: {path}")
     import cv2
 
-    raw = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if page is None:
+        raw = cv2.imread(file, cv2.IMREAD_UNCHANGED)
+    else:
+        pages = cv2.imcount(file)
+        if page >= pages:
+            raise ValueError(f"cannot read image {path}: {file} has {pages} page(s), "
+                             f"numbered from 0")
+        ok, found = cv2.imreadmulti(file, start=page, count=1, flags=cv2.IMREAD_UNCHANGED)
+        raw = found[0] if ok and found else None
     if raw is None:
         raise ValueError(f"cannot read image {path}: not a decodable PGM/PNG/TIFF file")
-    top, grey = _header(path)
+    top, grey = _header(file)
     if raw.ndim == 3:
         raw = raw[..., :3][..., ::-1] if raw.shape[-1] >= 3 and not grey else raw[..., 0]
     srgb = _srgb(path, raw.dtype == np.uint8, linearize)
@@ -150,7 +200,7 @@ def _decodes_srgb(path: PathLike, linearize: str = "auto") -> bool:
     """Whether `read_image(path, linearize=linearize)` decodes the file from sRGB, from its
     name and first bytes only (a PNG's bit depth is in its header; a JPEG is 8-bit), for a
     command's summary."""
-    path = os.fspath(path)
+    path = _split_page(os.fspath(path))[0]
     with open(path, "rb") as f:
         head = f.read(25)
     eight_bit = not (head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) == 25 and head[24] == 16)

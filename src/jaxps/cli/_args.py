@@ -94,8 +94,9 @@ def reconstruct_parser(sub) -> None:
         "Several capture folders: each capture's files in OUT/<folder>/ (all but the report), "
         "summary.json and summary.csv.",
     )
-    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order; "
-                   "several folders are several captures (one progress bar, a summary table)")
+    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order "
+                   "(a multi-page TIFF: its pages; one page: FILE.tif[N]); several folders are "
+                   "several captures (one progress bar, a summary table)")
     p.add_argument("--check-quality", action=argparse.BooleanOptionalAction, default=True,
                    help="drop frames flagged by jaxps.check_frames (corrupt, badly exposed or "
                    "inconsistent) before solving (default; --no-check-quality keeps every frame)")
@@ -169,7 +170,8 @@ def relight_parser(sub) -> None:
         "write relit PNGs for each --light, relight.gif (a light circling the face) and "
         "relight.json (fit report) to --out.",
     )
-    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
+    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order "
+                   "(a multi-page TIFF: its pages; one page: FILE.tif[N])")
     add_light_args(p, near=True)
     p.add_argument("--mask", default="auto", help="mask image, or 'auto' (default)")
     p.add_argument("--crop-face", action="store_true",
@@ -203,7 +205,8 @@ def calibrate_parser(sub) -> None:
         "OUT/lights.txt, with calibration.json (sphere, highlights, angles) and "
         "calibration.png. A frame without a highlight inside the mask is an error.",
     )
-    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order")
+    p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order "
+                   "(a multi-page TIFF: its pages; one page: FILE.tif[N])")
     p.add_argument("--mask", required=True,
                    help="the sphere's silhouette (image, non-zero inside; an anti-aliased edge "
                    "refines the centre and radius)")

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..acquisition import list_frames, load_stack, read_image, read_mask, target_ratios
 from ..acquisition._capture import _folder_ambient, _is_auto, _minus_ambient_file
+from ..acquisition._files import _exists, _frame_paths
 from ..lights import (
     angles_from_lights,
     lights_from_chrome,
@@ -40,7 +41,8 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
 
     **Arguments:**
     - `frames`: a folder of frames (natural order, names with "mask" or "ambient" skipped) or
-      the frame files, one per light.
+      the frame files, one per light (a multi-page TIFF stands for its pages, as in
+      `load_capture`).
     - `mask`: the sphere's silhouette, an image file of the frames' size (non-zero inside; an
       anti-aliased edge refines the centre and radius).
     - `ambient`: an ambient-only frame to subtract, or `"auto"` (the folder's `*ambient*`).
@@ -64,11 +66,11 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
     `FileNotFoundError` for a missing file.
     """
     board_ambient = ambient  # "auto": the board's folder has its own
-    if isinstance(frames, (str, os.PathLike)):
+    if isinstance(frames, (str, os.PathLike)) and os.path.isdir(frames):
         paths = list_frames(frames)
         ambient = _folder_ambient(frames, ambient)
     else:
-        paths = [os.fspath(p) for p in frames]
+        paths = _frame_paths(frames)
         if not paths:
             raise ValueError("frames: empty list of files")
         if _is_auto(ambient):
@@ -80,7 +82,7 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
                          "and the target's mask (--board, --board-mask, --intensity-mask)")
     for what, path in (("mask", mask), ("ambient frame", ambient), ("reference", reference),
                        ("board mask", board_mask), ("intensity mask", intensity_mask)):
-        if path is not None and not _is_auto(path) and not os.path.isfile(path):
+        if path is not None and not _is_auto(path) and not _exists(path):
             raise FileNotFoundError(f"{what} not found: {os.fspath(path)}")
     names = [os.path.basename(p) for p in paths]
     codes = {"bits": bits, "linearize": linearize}
@@ -173,8 +175,7 @@ def _board_ratios(board, ambient, lights, board_mask, target_mask, target_normal
         paths = list_frames(board)
         ambient = _folder_ambient(board, ambient)
     else:
-        paths = [os.fspath(p) for p in ([board] if isinstance(board, (str, os.PathLike))
-                                        else board)]
+        paths = _frame_paths(board)
         if _is_auto(ambient):
             raise ValueError("ambient='auto' takes the board's ambient frame from its folder; "
                              "with a list of files, give the ambient file")

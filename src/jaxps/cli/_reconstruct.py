@@ -12,9 +12,9 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from ..acquisition import list_frames, load_capture
+from ..acquisition import load_capture
 from ..acquisition._capture import MAX_SHIFT, _kept
-from ..acquisition._files import _decodes_srgb
+from ..acquisition._files import _decodes_srgb, _frame_paths
 from ..core import Status, status_counts
 from ..core._progress import Stages
 from ..integration import integrate
@@ -246,8 +246,7 @@ def _near_capture(frames, cap, positions, pixel_size, intensity_mask):
     quality checks may drop some), the frame's centre in `cap`'s crop (`_frame_centre`), and
     `cap` with its flash strengths re-estimated for the lamps (`_near_intensities`) unless a
     reference target measured them."""
-    given = [os.path.basename(p) for p in (
-        list_frames(frames) if isinstance(frames, (str, os.PathLike)) else frames)]
+    given = [os.path.basename(p) for p in _frame_paths(frames)]
     positions = positions[_kept(given, cap.names)]
     centre = _frame_centre(cap)
     if intensity_mask is None:
@@ -377,9 +376,7 @@ def _light_check(cap) -> dict | None:
 
 def _srgb_decoded(frames, linearize) -> bool:
     """Whether `load_capture` decoded the files `frames` (a folder or a list) from sRGB."""
-    if isinstance(frames, (str, os.PathLike)):
-        frames = list_frames(frames)
-    return _decodes_srgb(frames[0], linearize)
+    return _decodes_srgb(_frame_paths(frames)[0], linearize)
 
 
 def _srgb_line(decoded: bool, linearize: str) -> str | None:
