@@ -117,6 +117,14 @@ def test_read_errors_name_the_file(tmp_path):
         acq.read_image(tmp_path / "broken.png")
     with pytest.raises(ValueError, match="linearize"):
         acq.read_image(tmp_path / "broken.png", linearize="gamma")
+    # float frames in a camera's own units (here up to 2492.7) would read as saturated nearly
+    # everywhere, and the frame check would call them corrupt: the file is named instead
+    cv2.imwrite(str(tmp_path / "hdr.tif"), np.linspace(0, 2492.7, 12, dtype=np.float32)
+                .reshape(3, 4))
+    with pytest.raises(ValueError, match=r"hdr.tif holds floating-point values up to 2492.7"):
+        acq.read_image(tmp_path / "hdr.tif")
+    cv2.imwrite(str(tmp_path / "unit.tif"), np.linspace(0, 1, 12, dtype=np.float32).reshape(3, 4))
+    assert acq.read_image(tmp_path / "unit.tif").max() == 1.0
 
 
 def test_list_frames_natural_order_and_skips(tmp_path):

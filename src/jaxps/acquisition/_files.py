@@ -115,7 +115,8 @@ def read_image(path: PathLike, *, linearize: str = "auto",
       Default: the pixel type's largest code, or a PGM's maxval.
 
     **Raises:** `FileNotFoundError` if the file is missing, `ValueError` naming the file if it
-    cannot be decoded, has an unsupported bit depth, or codes above `bits`.
+    cannot be decoded, has an unsupported bit depth, codes above `bits`, or floating-point
+    values that are not finite or above 1 (float frames are intensities in [0, 1]).
     """
     return _to_float(*_decode(path, linearize, bits))
 
@@ -223,6 +224,11 @@ def _to_float(raw: np.ndarray, path: str, srgb: bool, top: int | None = None,
         out[...] = raw
         if not np.isfinite(out).all():  # integer pixels are always finite
             raise ValueError(f"image {path} contains NaN or Inf")
+        if out.max(initial=0) > 1:  # else most samples would read as saturated, a bad frame
+            raise ValueError(
+                f"image {path} holds floating-point values up to {float(out.max()):.6g}: "
+                "float frames are read as intensities in [0, 1] (1: saturated); scale them, "
+                "e.g. by the camera's full-scale value")
     if srgb:
         out[...] = srgb_to_linear(out)
     return out
