@@ -97,12 +97,13 @@ def test_grey_png_with_alpha_reads_as_grey(tmp_path):
 
 def test_8bit_srgb_png_decoded_tiff_and_pgm_linear(tmp_path):
     v = np.full((3, 3), 128, np.uint8)
-    for name in ("g.png", "g.pgm", "g.tif"):
+    for name in ("g.png", "g.pgm", "g.tif", "g.bmp"):
         cv2.imwrite(str(tmp_path / name), v)
     srgb = ((128 / 255 + 0.055) / 1.055) ** 2.4
     assert acq.read_image(tmp_path / "g.png")[0, 0] == pytest.approx(srgb, rel=1e-5)
     assert acq.read_image(tmp_path / "g.pgm")[0, 0] == pytest.approx(128 / 255, rel=1e-6)
     assert acq.read_image(tmp_path / "g.tif")[0, 0] == pytest.approx(128 / 255, rel=1e-6)
+    assert acq.read_image(tmp_path / "g.bmp")[0, 0] == pytest.approx(128 / 255, rel=1e-6)
     assert acq.read_image(tmp_path / "g.png", linearize="none")[0, 0] == pytest.approx(128 / 255)
     t16 = np.full((2, 2), 40000, np.uint16)
     cv2.imwrite(str(tmp_path / "t.tif"), t16)
@@ -128,10 +129,11 @@ def test_read_errors_name_the_file(tmp_path):
 
 
 def test_list_frames_natural_order_and_skips(tmp_path):
-    for name in ("x.10.png", "x.2.png", "x.mask.png", "x_Ambient.pgm", "notes.txt", "x.1.png"):
+    for name in ("x.10.png", "x.2.png", "x.mask.png", "x_Ambient.pgm", "notes.txt", "x.1.png",
+                 "x.3.bmp"):
         (tmp_path / name).write_bytes(b"")
     names = [p.rsplit("/", 1)[-1] for p in acq.list_frames(tmp_path)]
-    assert names == ["x.1.png", "x.2.png", "x.10.png"]
+    assert names == ["x.1.png", "x.2.png", "x.3.bmp", "x.10.png"]
     empty = tmp_path / "empty"
     empty.mkdir()
     with pytest.raises(FileNotFoundError, match="no frame files"):

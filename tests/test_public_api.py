@@ -117,6 +117,8 @@ ADDED = {
 # given, so that `reconstruct_many` drops frames inside `load_capture`); that entry rewritten.
 # Not from an issue: `jaxps.cli.reconstruct` gained `linearize` (`load_capture`'s, so that a
 # camera's linear 8-bit PNGs are not decoded from sRGB); that entry rewritten.
+# Not from an issue: `FRAME_EXTENSIONS` gained ".bmp" (machine-vision cameras' format, read as
+# linear codes); that entry rewritten.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

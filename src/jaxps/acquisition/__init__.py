@@ -1,6 +1,6 @@
 """Acquisition adapter (eager, numpy): from frame files to a capture ready for the solvers.
 
-Takes frame files (PGM/PNG/TIFF, 8/16-bit, grey or colour), an ambient frame, lights and a mask;
+Takes frame files (PGM/PNG/TIFF/BMP, 8/16-bit, grey or colour), an ambient frame, lights and a mask;
 gives a `Capture` of linear float32 `(K, H, W[, C])` images, lights, mask and saturation map,
 optionally equalised, cropped to the Haar-detected face and screened for bad frames.
 

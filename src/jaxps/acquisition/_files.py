@@ -1,4 +1,4 @@
-"""Frames from files: PGM/PNG/TIFF, 8- or 16-bit, grey or colour, to linear float32 in [0, 1].
+"""Frames from files: PGM/PNG/TIFF/BMP, 8- or 16-bit, grey or colour, to linear float32 in [0, 1].
 
 Intensities follow DESIGN.md: 8-bit / 255, 16-bit / 65535, linear in radiance; gamma-encoded
 sources (8-bit PNG/JPEG by default) are decoded from sRGB. Two refinements of the full scale: a
@@ -23,7 +23,7 @@ from ..core._host import aligned_empty
 
 __all__ = ["FRAME_EXTENSIONS", "list_frames", "load_stack", "read_image", "read_mask"]
 
-FRAME_EXTENSIONS = (".pgm", ".ppm", ".png", ".tif", ".tiff")
+FRAME_EXTENSIONS = (".pgm", ".ppm", ".png", ".tif", ".tiff", ".bmp")
 _SRGB_EXTENSIONS = (".png", ".jpg", ".jpeg")
 # Files in a frame folder whose names contain these words are not frames.
 _NOT_FRAMES = re.compile(r"mask|ambient", re.IGNORECASE)
@@ -38,7 +38,7 @@ def _natural_key(name: str):
 
 
 def list_frames(folder: PathLike) -> list[str]:
-    """Frame files in `folder` (PGM/PPM/PNG/TIFF), in natural order (``x.2`` before ``x.10``).
+    """Frame files in `folder` (PGM/PPM/PNG/TIFF/BMP), in natural order (``x.2`` before ``x.10``).
 
     Files whose names contain "mask" or "ambient" are skipped: pass those explicitly. A
     multi-page TIFF stands for its pages, in order (``stack.tif[0]``, ``stack.tif[1]``, ...).
@@ -108,7 +108,8 @@ def read_image(path: PathLike, *, linearize: str = "auto",
 
     **Arguments:**
     - `path`: the file; `"stack.tif[2]"` is page 2 (from 0) of a multi-page TIFF.
-    - `linearize`: `"auto"` decodes 8-bit PNG/JPEG from sRGB and leaves PGM/TIFF and 16-bit
+    - `linearize`: `"auto"` decodes 8-bit PNG/JPEG from sRGB and leaves PGM/TIFF/BMP (the
+      formats of machine-vision cameras, which write their codes as measured) and 16-bit
       files linear; `"srgb"` always decodes; `"none"` never does.
     - `bits`: the camera's bit depth, for integer files that hold its codes unscaled (a 12-bit
       camera's 0-4095 in 16-bit PNG or TIFF pixels): codes are divided by $2^{bits} - 1$.
@@ -178,7 +179,7 @@ def _decode(path: PathLike, linearize: str,
         ok, found = cv2.imreadmulti(file, start=page, count=1, flags=cv2.IMREAD_UNCHANGED)
         raw = found[0] if ok and found else None
     if raw is None:
-        raise ValueError(f"cannot read image {path}: not a decodable PGM/PNG/TIFF file")
+        raise ValueError(f"cannot read image {path}: not a decodable PGM/PNG/TIFF/BMP file")
     top, grey = _header(file)
     if raw.ndim == 3:
         raw = raw[..., :3][..., ::-1] if raw.shape[-1] >= 3 and not grey else raw[..., 0]
