@@ -147,6 +147,16 @@ def test_mismatched_frame_sizes_name_the_file(tmp_path):
     cv2.imwrite(str(tmp_path / "b.pgm"), np.zeros((4, 5), np.uint8))
     with pytest.raises(ValueError, match=r"b\.pgm has shape \(4, 5\)"):
         acq.load_stack([tmp_path / "a.pgm", tmp_path / "b.pgm"])
+    # one frame re-exported at another depth, or as a PNG (decoded from sRGB): not one scale
+    cv2.imwrite(str(tmp_path / "c.pgm"), np.zeros((4, 4), np.uint16))
+    with pytest.raises(ValueError, match=r"c\.pgm holds 16-bit codes, but .*a\.pgm holds "
+                                         r"8-bit codes: all frames of a capture must share"):
+        acq.load_stack([tmp_path / "a.pgm", tmp_path / "c.pgm"])
+    cv2.imwrite(str(tmp_path / "d.png"), np.zeros((4, 4), np.uint8))
+    with pytest.raises(ValueError, match=r"d\.png holds 8-bit codes decoded from sRGB"):
+        acq.load_stack([tmp_path / "a.pgm", tmp_path / "d.png"])
+    assert acq.load_stack([tmp_path / "a.pgm", tmp_path / "d.png"], linearize="none")[0].shape \
+        == (2, 4, 4)
 
 
 def test_load_capture_names_what_is_missing(tmp_path):

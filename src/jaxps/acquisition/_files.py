@@ -287,6 +287,11 @@ def load_stack(
                 f"frame {path} has shape {raw.shape}, but {first[1]} has {first[0].shape}: "
                 "all frames must be the same size and channels"
             )
+        if (raw.dtype, srgb) != (first[0].dtype, first[2]):  # one scale would be wrong
+            raise ValueError(
+                f"frame {path} holds {_pixels(raw.dtype, srgb)}, but {first[1]} holds "
+                f"{_pixels(first[0].dtype, first[2])}: all frames of a capture must share a "
+                "format (one camera, one export)")
         frame = _to_float(raw, path, srgb, top, out=stack[i])
         at_top = frame >= 1.0
         saturated[i] = at_top.any(axis=-1) if at_top.ndim == 3 else at_top
@@ -301,6 +306,13 @@ def load_stack(
             job.result()
     _warn_low_depth(tops, paths)
     return stack, saturated
+
+
+def _pixels(dtype, srgb: bool) -> str:
+    """A frame's pixel format in words, for errors."""
+    kind = {np.dtype(np.uint8): "8-bit", np.dtype(np.uint16): "16-bit"}.get(
+        np.dtype(dtype), f"{np.dtype(dtype)}")
+    return f"{kind} codes{' decoded from sRGB' if srgb else ''}"
 
 
 # A 10-, 12- or 14-bit camera's largest code; held by this many samples of one frame (its
