@@ -380,8 +380,10 @@ def test_target_ratios_carry_the_target_to_the_subject_under_near_lights(tmp_pat
     assert np.max(np.abs(plain.intensities / truth - 1)) > 0.05  # measured 0.10
     assert np.max(np.abs(fixed.intensities / truth - 1)) < 0.015  # measured 0.0085
     ratio_file = tmp_path / "ratios.txt"
-    ratio_file.write_text("# per light\n" + "".join(f"{r:.9f}  # f{k}.png\n"
-                                                     for k, r in enumerate(ratios)))
+    # with the byte-order mark and CRLF line ends of a file saved by Windows Notepad
+    ratio_file.write_text("\ufeff# per light\n" + "".join(f"{r:.9f}  # f{k}.png\n"
+                                                           for k, r in enumerate(ratios)),
+                          encoding="utf-8", newline="\r\n")
     np.testing.assert_allclose(acq.load_capture(paths, intensity_ratios=ratio_file,
                                                 **kw).intensities, fixed.intensities,
                                rtol=1e-6)

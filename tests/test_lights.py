@@ -39,6 +39,17 @@ def test_load_shared_psm_lights(data):
     assert np.all(l[:, 2] > 0.7)  # all lights in front, z toward the viewer
 
 
+def test_load_lights_reads_what_spreadsheets_and_notepad_write(tmp_path):
+    # a byte-order mark and CRLF line ends (Windows Notepad), tabs and semicolons (CSV exports)
+    f = tmp_path / "lights.txt"
+    f.write_bytes(b"\xef\xbb\xbf3\r\n0\t0\t1\r\n0.6;0;0.8\r\n0, 0.6, 0.8\r\n")
+    np.testing.assert_allclose(jaxps.load_lights(f), [[0, 0, 1], [0.6, 0, 0.8], [0, 0.6, 0.8]],
+                               atol=1e-7)
+    f.write_text("0,6;0;0,8\n0;0;1\n0;0,6;0,8\n")  # decimal commas: an error, not a misread
+    with pytest.raises(ValueError, match="3 numbers per line"):
+        jaxps.load_lights(f)
+
+
 @pytest.mark.parametrize(
     "text, match",
     [

@@ -416,7 +416,7 @@ def _ratios(ratios, k):
     if isinstance(ratios, (str, os.PathLike)):
         where = f" ({os.fspath(ratios)})"
         try:
-            ratios = np.loadtxt(ratios, comments="#", ndmin=1)
+            ratios = np.loadtxt(ratios, comments="#", ndmin=1, encoding="utf-8-sig")
         except ValueError as err:
             raise ValueError(f"intensity_ratios{where}: not a list of numbers: {err}") from None
     ratios = np.asarray(ratios, np.float64)

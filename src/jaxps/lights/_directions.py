@@ -115,15 +115,15 @@ def load_lights(path: str | os.PathLike) -> Float[np.ndarray, "K 3"]:
 
 def _read_xyz(path: str, label: str) -> np.ndarray:
     """The ``x y z`` rows of a ``lights.txt``-style file as `(N, 3)` float64: ``#`` comments,
-    commas or spaces, an optional first line with the count. `ValueError`s start with
+    spaces, tabs, commas or semicolons, an optional first line with the count. `ValueError`s start with
     `label` and the path (`load_lights`'s, and `jaxps reconstruct --light-positions`')."""
     rows = []
     try:
-        with open(path) as f:
+        with open(path, encoding="utf-8-sig") as f:  # a byte-order mark, as Notepad writes
             for line in f:
                 line = line.split("#", 1)[0].strip()
                 if line:
-                    rows.append(line.replace(",", " ").split())
+                    rows.append(line.replace(",", " ").replace(";", " ").split())
     except UnicodeDecodeError:
         raise ValueError(f"{label} {path}: not a text file") from None
     count = None
