@@ -390,7 +390,7 @@ def test_relit_images_of_srgb_frames_are_srgb(tmp_path):
     assert np.median(np.abs(got - truth)[inside]) < 0.01
 
 
-def test_reconstruct_pages_of_a_multi_page_tiff(tmp_path, capsys):
+def test_reconstruct_pages_of_a_multi_page_tiff(tmp_path):
     # `jaxps reconstruct stack.tif[0] ... stack.tif[4] --ambient stack.tif[5]`: a high-speed
     # camera's capture in one file, the ambient frame its last page.
     from jaxps import synthetic
