@@ -248,6 +248,23 @@ def test_multi_page_tiff_stands_for_its_pages(tmp_path):
         acq.load_capture(stack, lights=np.eye(3), ambient=tmp_path / "nope.tif[1]")
 
 
+def test_an_ambient_frame_in_another_encoding_is_named(tmp_path):
+    # 16-bit frames (linear) and an 8-bit PNG ambient frame (decoded from sRGB): not one scale
+    rng = np.random.default_rng(0)
+    paths = []
+    for k in range(3):
+        paths.append(tmp_path / f"f{k}.png")
+        cv2.imwrite(str(paths[-1]), rng.integers(20000, 60000, (6, 5), dtype=np.uint16))
+    cv2.imwrite(str(tmp_path / "amb.png"), np.full((6, 5), 20, np.uint8))
+    kw = {"lights": np.eye(3), "intensities": "none", "check_quality": False, "register": False}
+    with pytest.raises(ValueError, match=r"amb.png is decoded from sRGB .* but the frames "
+                                         r"\(f0.png\) are read as linear"):
+        acq.load_capture(paths, ambient=tmp_path / "amb.png", **kw)
+    cap = acq.load_capture(paths, ambient=tmp_path / "amb.png", linearize="none", **kw)
+    raw = cv2.imread(str(paths[0]), cv2.IMREAD_UNCHANGED) / 65535
+    np.testing.assert_allclose(cap.images[0], raw - 20 / 255, atol=1e-6)
+
+
 def test_folder_lights_auto(tmp_path):
     # lights="auto" takes the folder's own lights file, as ambient="auto" its ambient frame.
     rng = np.random.default_rng(0)

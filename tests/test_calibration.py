@@ -234,7 +234,10 @@ def test_calibrate_command_on_the_psm_chrome_sphere(tmp_path, data, capsys):
     angle = _angles(want.lights, jaxps.load_lights(data / "psm" / "lights.txt"))
     report = json.loads((tmp_path / "calibration.json").read_text())
     np.testing.assert_allclose(report["reference"]["angle_deg"], angle, atol=1e-3)
-    assert "(chrome.1.png)" in capsys.readouterr().out  # the light farthest from lights.txt
+    printed = capsys.readouterr().out
+    assert "(chrome.1.png)" in printed  # the light farthest from lights.txt
+    # psm's 8-bit PNGs are decoded from sRGB, and the command says so
+    assert report["srgb_decoded"] and "calibrate: 8-bit PNG/JPEG frames read as sRGB" in printed
 
 
 def test_calibrate_command_errors_name_the_problem(tmp_path, capsys):

@@ -25,6 +25,7 @@ from ._face import bucket_box, crop, detect_face
 from ._files import (
     FRAME_EXTENSIONS,
     PathLike,
+    _decodes_srgb,
     _exists,
     _frame_paths,
     list_frames,
@@ -234,7 +235,7 @@ def load_capture(
                          "(one light per frame, in the frames' order)")
 
     if ambient is not None:
-        images = _minus_ambient_file(images, ambient, linearize=linearize, bits=bits)
+        images = _minus_ambient_file(images, ambient, paths[0], linearize=linearize, bits=bits)
 
     if isinstance(mask, np.ndarray):
         if mask.shape != images.shape[1:3]:
@@ -461,11 +462,20 @@ def _semi_calibrated(grey, lights, mask, sample_mask):
     return np.asarray(info["intensities"], np.float32), fit
 
 
-def _minus_ambient_file(images, ambient, **read_options):
-    """`images` (a stack the caller owns) with the frame in the file `ambient`
-    (`read_image(ambient, **read_options)`) subtracted in place and clipped at 0; a
-    `ValueError` names the file if its shape is not the frames', or if it is brighter than the
-    median frame over much of the image (`_below_ambient`)."""
+def _minus_ambient_file(images, ambient, frame, **read_options):
+    """`images` (a stack the caller owns, read from files like `frame`) with the frame in the
+    file `ambient` (`read_image(ambient, **read_options)`) subtracted in place and clipped at
+    0; a `ValueError` names the file if it is decoded from sRGB where the frames are not (or
+    the other way), if its shape is not the frames', or if it is brighter than the median
+    frame over much of the image (`_below_ambient`)."""
+    linearize = read_options.get("linearize", "auto")
+    if _decodes_srgb(ambient, linearize) != _decodes_srgb(frame, linearize):
+        said = {True: "decoded from sRGB (an 8-bit PNG)", False: "read as linear"}
+        raise ValueError(
+            f"ambient frame {os.fspath(ambient)} is {said[_decodes_srgb(ambient, linearize)]}, "
+            f"but the frames ({os.path.basename(frame)}) are "
+            f"{said[_decodes_srgb(frame, linearize)]}: subtracted, the two would not be on one "
+            "scale. Save the ambient frame as the frames are saved.")
     amb = read_image(ambient, **read_options)
     if amb.shape != images.shape[1:]:
         raise ValueError(f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, frames "

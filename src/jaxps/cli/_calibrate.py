@@ -18,7 +18,7 @@ import numpy as np
 
 from ..acquisition import list_frames, load_stack, read_image, read_mask, target_ratios
 from ..acquisition._capture import _folder_ambient, _is_auto, _minus_ambient_file
-from ..acquisition._files import _exists, _frame_paths
+from ..acquisition._files import _decodes_srgb, _exists, _frame_paths
 from ..lights import (
     angles_from_lights,
     lights_from_chrome,
@@ -27,6 +27,7 @@ from ..lights import (
     validate_lights,
 )
 from ..report._writers import write_json
+from ._reconstruct import _srgb_line
 
 __all__ = ["calibrate", "run"]
 
@@ -113,6 +114,7 @@ def calibrate(frames, out: str, *, mask, ambient=None, level: float = 0.5,
         "frames": paths,
         "mask": os.fspath(mask),
         "ambient": None if ambient is None else os.fspath(ambient),
+        "srgb_decoded": _decodes_srgb(paths[0], linearize),
         "level": level,
         "sphere": {"centre_row": r0, "centre_col": c0, "radius_px": radius},
         "lights": [
@@ -164,7 +166,7 @@ def _frames(paths, ambient, codes):
     `ambient` (a file, or None) subtracted."""
     images, saturated = load_stack(paths, **codes)
     if ambient is not None:
-        images = _minus_ambient_file(images, ambient, **codes)
+        images = _minus_ambient_file(images, ambient, paths[0], **codes)
     return images, saturated
 
 
@@ -275,6 +277,8 @@ def run(args) -> int:
                        intensity_mask=args.intensity_mask,
                        intensity_normal=args.intensity_normal, board_normal=args.board_normal,
                        bits=args.bits, linearize=args.linearize)
+    if line := _srgb_line(report["srgb_decoded"], args.linearize):
+        print("calibrate: " + line)
     sphere = report["sphere"]
     print(f"calibrated {len(report['lights'])} lights on the mirror sphere (centre row "
           f"{sphere['centre_row']:.1f}, col {sphere['centre_col']:.1f}, radius "
