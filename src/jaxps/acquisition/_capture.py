@@ -469,13 +469,13 @@ def _minus_ambient_file(images, ambient, frame, **read_options):
     the other way), if its shape is not the frames', or if it is brighter than the median
     frame over much of the image (`_below_ambient`)."""
     linearize = read_options.get("linearize", "auto")
-    if _decodes_srgb(ambient, linearize) != _decodes_srgb(frame, linearize):
-        said = {True: "decoded from sRGB (an 8-bit PNG)", False: "read as linear"}
+    decoded = _decodes_srgb(ambient, linearize), _decodes_srgb(frame, linearize)
+    if decoded[0] != decoded[1]:
+        said = ("read as linear", "decoded from sRGB (an 8-bit PNG)")
         raise ValueError(
-            f"ambient frame {os.fspath(ambient)} is {said[_decodes_srgb(ambient, linearize)]}, "
-            f"but the frames ({os.path.basename(frame)}) are "
-            f"{said[_decodes_srgb(frame, linearize)]}: subtracted, the two would not be on one "
-            "scale. Save the ambient frame as the frames are saved.")
+            f"ambient frame {os.fspath(ambient)} is {said[decoded[0]]}, but the frames "
+            f"({os.path.basename(frame)}) are {said[decoded[1]]}: subtracted, the two would "
+            "not be on one scale. Save the ambient frame as the frames are saved.")
     amb = read_image(ambient, **read_options)
     if amb.shape != images.shape[1:]:
         raise ValueError(f"ambient frame {os.fspath(ambient)} has shape {amb.shape}, frames "
