@@ -21,6 +21,12 @@ def test_parse_yale_name():
     assert jaxps.parse_yale_name("/x/yaleB02_P00A-110E-20.pgm") == (-110.0, -20.0)
     assert jaxps.parse_yale_name("yaleB01_P00_Ambient.pgm") is None
     assert jaxps.parse_yale_name("cat.0.png") is None
+    # a rig's own frames named the same way, without Yale B's pose
+    assert jaxps.parse_yale_name("A+035E+15.png") == (35.0, 15.0)
+    assert jaxps.parse_yale_name("face_A-25E+20.tif") == (-25.0, 20.0)
+    assert jaxps.parse_yale_name("P00A+0E-20.pgm") == (0.0, -20.0)
+    assert jaxps.parse_yale_name("dataA+035E+15.png") is None  # not a name's own part
+    assert jaxps.parse_yale_name("yaleB01_P00A+035E+15.pgm.bak") is None
 
 
 def test_load_lights_normalises(tmp_path):

@@ -57,7 +57,8 @@ def add_light_args(p, near=False) -> None:
                    "'auto': the .txt file named *light* in each folder of frames (one per "
                    "capture)")
     g.add_argument("--yale-names", action="store_true",
-                   help="parse lights from Yale B names (..._P00A+035E+15.pgm)")
+                   help="parse lights from Yale B names (..._P00A+035E+15.pgm: azimuth +35, "
+                   "elevation +15 degrees; a rig's own frames may be named A+035E+15.png)")
     if near:
         g.add_argument("--light-positions", metavar="FILE",
                        help="near lamps: 'x y z' per frame in mm, camera frame, origin at the "

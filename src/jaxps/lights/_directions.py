@@ -24,7 +24,8 @@ __all__ = [
 # Condition number above which a light set is treated as not spanning 3-D.
 MAX_LIGHT_CONDITION = 1e4
 
-_YALE_RE = re.compile(r"_P\d+A([+-]\d+)E([+-]\d+)(?:\.[A-Za-z0-9]+)?$")
+# "..._P00A+035E+15.pgm"; also without the pose ("A+035E+15.png", "face_A+35E+15.tif")
+_YALE_RE = re.compile(r"(?:^|[_\W])(?:P\d+)?A([+-]\d+)E([+-]\d+)(?:\.[A-Za-z0-9]+)?$")
 
 
 def lights_from_angles(
@@ -86,6 +87,8 @@ def parse_yale_name(name: str | os.PathLike) -> tuple[float, float] | None:
     """Azimuth and elevation in degrees from a Yale B file name, or ``None``.
 
     ``yaleB01_P00A+035E+15.pgm`` -> ``(35.0, 15.0)``; ``yaleB01_P00_Ambient.pgm`` -> ``None``.
+    The pose may be left out, so that a rig can name its frames the same way:
+    ``A+035E+15.png`` and ``face_A+35E+15.tif`` -> ``(35.0, 15.0)``.
     """
     m = _YALE_RE.search(os.path.basename(os.fspath(name)))
     if m is None:
