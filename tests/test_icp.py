@@ -202,7 +202,7 @@ def test_compare_to_scan_on_diligent_depth(data, tmp_path):
     assert img is not None and img.shape[0] > 100 and img.std() > 10
 
 
-def test_jaxtyping_annotations_hold(face_points):
+def test_jaxtyping_annotations_hold(face_points, tmp_path):
     from beartype import beartype
     from jaxtyping import jaxtyped
 
@@ -210,7 +210,7 @@ def test_jaxtyping_annotations_hold(face_points):
     height, mask = np.asarray(surf.height), np.asarray(surf.mask)
     checked = {f.__name__: jaxtyped(typechecker=beartype)(f) for f in (
         ev.points_from_height, ev.points_from_depth, ev.icp, ev.estimate_normals,
-        ev.l2_error, ev.compare_to_scan, ev.transform_points)}
+        ev.l2_error, ev.compare_to_scan, ev.transform_points, ev.read_scan)}
     pts, pix = checked["points_from_height"](height, mask=mask)
     k = np.array([[100.0, 0, 16], [0, 100.0, 16], [0, 0, 1]])
     checked["points_from_depth"](np.where(mask, 50.0 - height, np.nan), k, mask=mask)
@@ -221,6 +221,9 @@ def test_jaxtyping_annotations_hold(face_points):
     comp = checked["compare_to_scan"](height, pts, mask=mask, normals=np.asarray(surf.normals),
                                       scale=False, max_steps=5)
     assert comp.rms_height < 1e-3
+    jaxps.report.to_trimesh(height, mask).export(tmp_path / "scan.ply")
+    points, normals = checked["read_scan"](tmp_path / "scan.ply")
+    assert points.shape == normals.shape
 
 
 def test_plot_error_maps_names_maps_of_another_shape():
@@ -231,3 +234,81 @@ def test_plot_error_maps_names_maps_of_another_shape():
         ev.plot_error_maps({"a": a}, mask=np.ones((5, 5), bool))  # numpy's broadcast error
     with pytest.raises(ValueError, match=r"map 'a' must be \(H, W\)"):
         ev.plot_error_maps({"a": a[0]})
+
+
+@pytest.fixture(scope="module")
+def face_scan():
+    """A synthetic face, its truth, and the same surface as a mesh in another unit and pose:
+    0.6 units per pixel, turned 4 degrees about y and moved, as a scanner would hand it over."""
+    surf = jaxps.synthetic.face_like(64)
+    height, mask = np.asarray(surf.height), np.asarray(surf.mask)
+    mesh = jaxps.report.to_trimesh(height, mask)
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_euler("y", 4, degrees=True).as_matrix()
+    turn[:3, 3] = [5.0, -3.0, 400.0]
+    mesh.apply_scale(0.6)
+    mesh.apply_transform(turn)
+    return height, mask, np.asarray(surf.normals), mesh
+
+
+@pytest.mark.parametrize("name", ["face.ply", "face.obj", "face.stl", "face.off",
+                                  "inside_out.ply", "points.xyz", "points_normals.csv",
+                                  "points.npy"])
+def test_read_scan_compares_a_mesh_in_its_own_unit_and_pose(face_scan, tmp_path, name):
+    height, mask, normals, mesh = face_scan
+    path = tmp_path / name
+    if name.startswith("face"):
+        mesh.export(path)
+    elif name == "inside_out.ply":  # faces wound the other way: normals point into the head
+        flipped = mesh.copy()
+        flipped.invert()
+        flipped.export(path)
+    elif name == "points.xyz":
+        np.savetxt(path, mesh.vertices, header="x y z")
+    elif name == "points_normals.csv":
+        np.savetxt(path, np.c_[mesh.vertices, mesh.vertex_normals], delimiter=",")
+    else:
+        np.save(path, mesh.vertices)
+    points, scan_normals = ev.read_scan(path)
+    assert points.shape == mesh.vertices.shape and points.dtype == np.float64
+    np.testing.assert_allclose(np.sort(points, axis=0), np.sort(mesh.vertices, axis=0),
+                               atol=1e-4)  # STL and PLY store float32
+    assert (scan_normals is None) == (name in ("points.xyz", "points.npy"))
+    comp = ev.compare_to_scan(height, points, mask=mask, normals=normals,
+                              target_normals=scan_normals, trim=0.95)
+    np.testing.assert_allclose(comp.icp.scale, 0.6, rtol=1e-3)
+    assert comp.rms_height < 1e-3  # scan units
+    # The mesh's own normals (0.37-0.38 degrees from the truth here) are closer than normals
+    # estimated from its points (0.86), also when its faces are wound inside out: they are
+    # turned to face the camera, where they would read as 180 degrees off.
+    assert comp.median_angular < (0.5 if scan_normals is not None else 1.2)
+    assert comp.median_angular > 0.05  # a faceted mesh is not the smooth truth
+
+
+def test_read_scan_names_what_it_cannot_read(tmp_path):
+    with pytest.raises(FileNotFoundError, match="no such file"):
+        ev.read_scan(tmp_path / "missing.ply")
+    (tmp_path / "scan.vtk").write_text("# vtk DataFile\n")
+    with pytest.raises(ValueError, match=r"scan.vtk is not a scan format.*\.ply"):
+        ev.read_scan(tmp_path / "scan.vtk")
+    (tmp_path / "four.txt").write_text("0 0 0 1\n1 0 0 1\n0 1 0 1\n")
+    with pytest.raises(ValueError, match=r"four.txt, line 1: 4 numbers; expected 3"):
+        ev.read_scan(tmp_path / "four.txt")
+    (tmp_path / "ragged.txt").write_text("0 0 0\n1 0 0 0 0 1\n0 1 0\n")
+    with pytest.raises(ValueError, match=r"ragged.txt, line 2: 6 numbers"):
+        ev.read_scan(tmp_path / "ragged.txt")
+    (tmp_path / "words.csv").write_text("x,y,z\n0,0,0\n")
+    with pytest.raises(ValueError, match=r"words.csv, line 1: not numbers: 'x,y,z'"):
+        ev.read_scan(tmp_path / "words.csv")
+    (tmp_path / "two.xyz").write_text("0 0 0\n1 0 0\n")
+    with pytest.raises(ValueError, match="two.xyz has 2 points; ICP needs at least 3"):
+        ev.read_scan(tmp_path / "two.xyz")
+    np.save(tmp_path / "nan.npy", np.array([[0, 0, 0], [1, 0, np.nan], [0, 1, 0.0]]))
+    with pytest.raises(ValueError, match="nan.npy has NaN/Inf coordinates"):
+        ev.read_scan(tmp_path / "nan.npy")
+    np.save(tmp_path / "flat.npy", np.zeros((5, 4)))
+    with pytest.raises(ValueError, match=r"shape \(5, 4\); expected \(M, 3\)"):
+        ev.read_scan(tmp_path / "flat.npy")
+    (tmp_path / "broken.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement")
+    with pytest.raises(ValueError, match="cannot read .*broken.ply"):
+        ev.read_scan(tmp_path / "broken.ply")

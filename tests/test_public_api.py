@@ -44,6 +44,9 @@ ADDED = {
     "jaxps.report": ["progress_bar", "to_trimesh"],
     # Issue 18: the installed `jaxps` script's entry point (`main` with `gc.freeze`).
     "jaxps.cli": ["console"],
+    # Not from an issue: `read_scan`, a ground-truth scan's mesh or point file for
+    # `compare_to_scan` (and `jaxps report --truth-scan`), and the formats it reads.
+    "jaxps.evaluate": ["SCAN_EXTENSIONS", "read_scan"],
 }
 # Changed on purpose since the snapshot (issue 17; the snapshot entries were rewritten):
 # `load_capture(equalize=False)` and `reconstruct(equalize=False)` became
@@ -119,6 +122,9 @@ ADDED = {
 # camera's linear 8-bit PNGs are not decoded from sRGB); that entry rewritten.
 # Not from an issue: `FRAME_EXTENSIONS` gained ".bmp" (machine-vision cameras' format, read as
 # linear codes); that entry rewritten.
+# Not from an issue: `write_report` gained `truth_scan` (a scan file or points, compared after
+# ICP as `truth_depth` is); that entry rewritten, and `jaxps.evaluate`'s list of names, which
+# gained `read_scan` and `SCAN_EXTENSIONS`.
 CLI_NAMES = ("main", "reconstruct", "build_parser", "console")
 
 

@@ -155,7 +155,12 @@ def report_parser(sub) -> None:
     )
     p.add_argument("run_dir", help="a folder written by 'jaxps reconstruct'")
     p.add_argument("--truth-normals", help="ground-truth normal map PNG (16-bit, same grid)")
-    p.add_argument("--truth-depth", help="ground-truth depth (.npz key depth_gt, or .npy)")
+    truth = p.add_mutually_exclusive_group()
+    truth.add_argument("--truth-depth", help="ground-truth depth (.npz key depth_gt, or .npy)")
+    truth.add_argument("--truth-scan", metavar="FILE",
+                       help="ground-truth scan: a mesh (.ply, .obj, .stl, .off, .glb) or points "
+                       "(.xyz/.txt/.csv: x y z [nx ny nz] per line) in any unit, axes roughly "
+                       "the camera's (x right, y up, z toward it); aligned by scaled ICP")
     p.add_argument("--intrinsics", help="K.txt camera matrix for --truth-depth")
     p.add_argument("--truth-mask", help="mask image for the ground truth")
     p.add_argument("--out", help="HTML path (default RUN_DIR/report.html)")

@@ -10,6 +10,7 @@ __all__ = ["run"]
 def run(args) -> int:
     path = write_report(args.run_dir, truth_normals=args.truth_normals,
                         truth_depth=args.truth_depth, intrinsics=args.intrinsics,
-                        truth_mask=args.truth_mask, out=args.out)
+                        truth_mask=args.truth_mask, truth_scan=args.truth_scan,
+                        out=args.out)
     print(f"wrote {path}")
     return 0

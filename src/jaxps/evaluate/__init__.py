@@ -2,7 +2,7 @@
 
 Takes normals and height maps with a reference (normal maps, depth scans); gives angular,
 $\\ell_2$ and height errors (MADE, RMS), ICP alignment to a scanned point cloud, per-pixel error
-maps and their figures.
+maps and their figures; `read_scan` reads a scan's mesh or point file.
 """
 
 from ._icp import (
@@ -23,11 +23,12 @@ from ._metrics import (
     made,
 )
 from ._plot import plot_error_maps
-from ._scan import ScanComparison, compare_to_scan, l2_error
+from ._scan import SCAN_EXTENSIONS, ScanComparison, compare_to_scan, l2_error, read_scan
 
 __all__ = [
     "ICP_METHODS",
     "ICPResult",
+    "SCAN_EXTENSIONS",
     "ScanComparison",
     "angular_error",
     "angular_stats",
@@ -42,5 +43,6 @@ __all__ = [
     "plot_error_maps",
     "points_from_depth",
     "points_from_height",
+    "read_scan",
     "transform_points",
 ]

@@ -22,6 +22,9 @@ point:
 
 from __future__ import annotations
 
+import os
+import pathlib
+import re
 from typing import NamedTuple
 
 import numpy as np
@@ -29,7 +32,12 @@ from jaxtyping import ArrayLike, Bool, Float
 
 from ._icp import ICPResult, estimate_normals, icp, points_from_height
 
-__all__ = ["ScanComparison", "compare_to_scan", "l2_error"]
+__all__ = ["SCAN_EXTENSIONS", "ScanComparison", "compare_to_scan", "l2_error", "read_scan"]
+
+# Meshes and point clouds trimesh reads, then text and numpy point lists (`read_scan`).
+_MESH_EXTENSIONS = (".ply", ".obj", ".stl", ".off", ".glb")
+_TEXT_EXTENSIONS = (".xyz", ".txt", ".csv", ".asc")
+SCAN_EXTENSIONS: tuple[str, ...] = (*_MESH_EXTENSIONS, *_TEXT_EXTENSIONS, ".npy")
 
 
 class ScanComparison(NamedTuple):
@@ -55,6 +63,96 @@ class ScanComparison(NamedTuple):
     mean_angular: float
     mean_l2: float
     icp: ICPResult
+
+
+def read_scan(
+    path: str | os.PathLike,
+) -> tuple[Float[np.ndarray, "M 3"], Float[np.ndarray, "M 3"] | None]:
+    """Read a ground-truth scan (a mesh or a point cloud) for `compare_to_scan`.
+
+    - A mesh (`.ply` with faces, `.obj`, `.stl`, `.off`, `.glb`), as a structured-light or
+      stereo face scanner exports one: its vertices, and normals from its faces (trimesh's
+      vertex normals, or the ones the file stores).
+    - A point cloud (`.ply` without faces, such as `jaxps reconstruct --points` writes): its
+      vertices, and `nx ny nz` where the file has them.
+    - Text (`.xyz`, `.txt`, `.csv`, `.asc`): `x y z` or `x y z nx ny nz` per line, separated by
+      spaces, tabs, commas or semicolons; lines starting with `#` are skipped.
+    - `.npy`: an `(M, 3)` or `(M, 6)` array in the same layout.
+
+    Any length unit will do, since `compare_to_scan` fits a scale. The axes must be roughly
+    the camera's of DESIGN.md (x right, y up, z toward the camera): ICP corrects a few degrees,
+    not a scan stored with z up.
+
+    **Returns:** `(points (M, 3), normals (M, 3) or None)` as float64; normals are unit length
+    and `None` when the file has none (or any of them is zero or not finite), in which case
+    `compare_to_scan` estimates them from the points.
+
+    **Raises:** `FileNotFoundError` for a missing file; `ValueError` naming the file for an
+    extension not in `SCAN_EXTENSIONS`, a file with fewer than 3 points, non-finite
+    coordinates, or text rows of other than 3 or 6 numbers.
+    """
+    p = pathlib.Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"scan: no such file {p}")
+    ext = p.suffix.lower()
+    if ext not in SCAN_EXTENSIONS:
+        raise ValueError(f"scan: {p} is not a scan format jaxps reads "
+                         f"({', '.join(SCAN_EXTENSIONS)})")
+    if ext in _MESH_EXTENSIONS:
+        points, normals = _read_mesh(p)
+    else:
+        table = np.load(p) if ext == ".npy" else _read_table(p)
+        table = np.asarray(table, np.float64)
+        if table.ndim != 2 or table.shape[1] not in (3, 6):
+            raise ValueError(f"scan: {p} holds an array of shape {table.shape}; expected "
+                             "(M, 3) x y z or (M, 6) x y z nx ny nz")
+        points, normals = table[:, :3], table[:, 3:] if table.shape[1] == 6 else None
+    if points.shape[0] < 3:
+        raise ValueError(f"scan: {p} has {points.shape[0]} points; ICP needs at least 3")
+    if not np.all(np.isfinite(points)):
+        raise ValueError(f"scan: {p} has NaN/Inf coordinates")
+    if normals is not None:
+        length = np.linalg.norm(normals, axis=-1, keepdims=True)
+        normals = normals / length if np.all(np.isfinite(length) & (length > 0)) else None
+    return points, normals
+
+
+def _read_mesh(path: pathlib.Path):
+    import trimesh
+
+    try:
+        geometry = trimesh.load(path)
+    except Exception as err:  # trimesh raises many kinds for a broken file
+        raise ValueError(f"scan: cannot read {path}: {err}") from err
+    if isinstance(geometry, trimesh.Scene):  # an OBJ of several groups
+        geometry = geometry.to_mesh()
+    points = np.asarray(geometry.vertices, np.float64)
+    if isinstance(geometry, trimesh.Trimesh) and len(geometry.faces):
+        return points, np.asarray(geometry.vertex_normals, np.float64)
+    vertex = geometry.metadata.get("_ply_raw", {}).get("vertex", {}).get("data", {})
+    if isinstance(vertex, dict) and all(k in vertex for k in ("nx", "ny", "nz")):
+        normals = np.concatenate([np.reshape(vertex[k], (-1, 1)) for k in ("nx", "ny", "nz")],
+                                 axis=1).astype(np.float64)
+        if normals.shape == points.shape:
+            return points, normals
+    return points, None
+
+
+def _read_table(path: pathlib.Path) -> np.ndarray:
+    rows = []
+    for number, line in enumerate(path.read_text(encoding="utf-8-sig").splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        try:
+            rows.append([float(v) for v in re.split(r"[\s,;]+", line) if v])
+        except ValueError:
+            raise ValueError(f"scan: {path}, line {number}: not numbers: {line[:60]!r}") \
+                from None
+        if len(rows[-1]) not in (3, 6) or len(rows[-1]) != len(rows[0]):
+            raise ValueError(f"scan: {path}, line {number}: {len(rows[-1])} numbers; expected "
+                             "3 (x y z) or 6 (x y z nx ny nz) on every line")
+    return np.array(rows, np.float64) if rows else np.zeros((0, 3))
 
 
 def l2_error(
@@ -98,11 +196,13 @@ def compare_to_scan(
 
     **Arguments:**
     - `height`: `(H, W)` reconstructed height, toward the viewer (e.g. `jaxps.integrate`).
-    - `target`: `(M, 3)` scan points in the camera frame (e.g. `points_from_depth`).
+    - `target`: `(M, 3)` scan points in the camera frame, or in one whose axes are within a
+      few degrees of it, in any unit (e.g. `points_from_depth`, or `read_scan` of a mesh).
     - `mask`: `(H, W)` bool, reconstructed pixels to compare (default: all finite).
     - `normals`: `(H, W, 3)` reconstructed normals for the angular and $\\ell_2$ maps (default:
       none, those maps stay 0).
-    - `target_normals`: `(M, 3)` scan normals (default: `estimate_normals(target)`).
+    - `target_normals`: `(M, 3)` scan normals (default: `estimate_normals(target)`), e.g. a
+      mesh's from `read_scan`; each one paired with a pixel is turned to face the camera.
     - `pixel_size`: the reconstruction's pixel size in its height unit.
     - `scale`: fit a global scale in ICP (default True).
     - `**icp_options`: passed to `icp` (default here: `init="centroid"`).
@@ -130,9 +230,14 @@ def compare_to_scan(
     from scipy.spatial import cKDTree
 
     _, idx = cKDTree(tgt).query(res.aligned.astype(np.float64))
-    tn64 = tn.astype(np.float64)
-    tn64 /= np.maximum(np.linalg.norm(tn64, axis=-1, keepdims=True), 1e-12)
-    signed = np.sum((res.aligned.astype(np.float64) - tgt[idx]) * tn64[idx], axis=-1)
+    ref = tn[idx].astype(np.float64)
+    ref /= np.maximum(np.linalg.norm(ref, axis=-1, keepdims=True), 1e-12)
+    # A point the camera sees faces it: each paired scan normal is turned toward the camera's
+    # axis, carried into the scan's frame by the ICP rotation. A mesh wound inside out would
+    # otherwise read as 180-degree errors and flip the sign of the height error.
+    view = np.asarray(res.rotation, np.float64)[:, 2]
+    ref = np.where((ref @ view)[:, None] < 0, -ref, ref)
+    signed = np.sum((res.aligned.astype(np.float64) - tgt[idx]) * ref, axis=-1)
 
     h, w = z.shape
     sel = np.zeros((h, w), bool)
@@ -151,7 +256,6 @@ def compare_to_scan(
         rot = np.asarray(res.rotation, np.float64)
         nr = n[pix[:, 0], pix[:, 1]] @ rot.T
         nr /= np.maximum(np.linalg.norm(nr, axis=-1, keepdims=True), 1e-12)
-        ref = tn64[idx]
         cross = np.linalg.norm(np.cross(nr, ref), axis=-1)
         ang[pix[:, 0], pix[:, 1]] = np.degrees(np.arctan2(cross, np.sum(nr * ref, axis=-1)))
         l2[pix[:, 0], pix[:, 1]] = np.linalg.norm(nr - ref, axis=-1)

@@ -2,7 +2,7 @@
 
 The page shows the normal map, the albedo, the height map shaded from the upper left, the
 per-pixel status, error maps against ground truth where it is given (a normal map compared pixel
-by pixel; a depth scan compared after ICP, as in `jaxps.evaluate.compare_to_scan`), the
+by pixel; a depth map or a scan file compared after ICP, as in `jaxps.evaluate.compare_to_scan`), the
 Lambertian check plot ($I/\\rho$ against $\\cos\\theta$) where the run has one, and the
 timings and settings from `summary.json`. Figures go to `RUN_DIR/report_files/` and are linked
 relatively, so the folder can be moved or served as it is.
@@ -64,6 +64,7 @@ def write_report(
     truth_depth=None,
     intrinsics=None,
     truth_mask=None,
+    truth_scan=None,
     out=None,
 ) -> pathlib.Path:
     """Write `RUN_DIR/report.html` (and its figures in `RUN_DIR/report_files/`).
@@ -78,12 +79,18 @@ def write_report(
       array) and `intrinsics` (`K.txt` path or `(3, 3)`): the height map is aligned to its
       back-projection with scaled ICP and the height error is mapped.
     - `truth_mask`: a mask image or `(H, W)` bool for the ground truth (default: all finite).
+    - `truth_scan`: a scan file (`jaxps.evaluate.read_scan`: a mesh or point cloud in any unit,
+      axes roughly the camera's) or `(M, 3)` points, instead of `truth_depth`: aligned and
+      mapped the same way, with the mesh's own normals for the angular error.
     - `out`: the HTML path (default `RUN_DIR/report.html`).
 
     **Returns:** the path of the HTML file.
 
-    **Raises:** `FileNotFoundError` when `run_dir` has neither `normals.png` nor `summary.json`.
+    **Raises:** `FileNotFoundError` when `run_dir` has neither `normals.png` nor `summary.json`;
+    `ValueError` when both `truth_depth` and `truth_scan` are given.
     """
+    if truth_depth is not None and truth_scan is not None:
+        raise ValueError("truth_depth and truth_scan: give one ground-truth surface, not both")
     run = pathlib.Path(run_dir)
     if not (run / "normals.png").is_file() and not (run / "summary.json").is_file():
         raise FileNotFoundError(f"{run} is not a jaxps run directory (no normals.png, "
@@ -156,14 +163,24 @@ def write_report(
                               for k, v in stats.items() if k != "pixels"]
                              + [("mean l2-norm error", float(l2[tm].mean())),
                                 ("pixels compared", int(stats["pixels"]))]))
-    if truth_depth is not None and height is not None:
-        if intrinsics is None:
-            raise ValueError("truth_depth needs intrinsics (K.txt or a (3, 3) matrix)")
-        depth = _load_depth(truth_depth)
-        k = np.loadtxt(intrinsics) if isinstance(intrinsics, (str, os.PathLike)) else intrinsics
-        dm = _truth_mask(truth_mask, depth.shape)
-        pts, _ = evaluate.points_from_depth(depth, k, mask=dm)
-        comp = evaluate.compare_to_scan(height, pts, mask=mask, normals=normals, trim=0.95)
+    if (truth_depth is not None or truth_scan is not None) and height is not None:
+        scan_normals, what = None, "depth scan"
+        if truth_scan is not None:
+            if isinstance(truth_scan, (str, os.PathLike)):
+                pts, scan_normals = evaluate.read_scan(truth_scan)
+                what = f"scan {pathlib.Path(truth_scan).name}"
+            else:
+                pts = np.asarray(truth_scan)
+        else:
+            if intrinsics is None:
+                raise ValueError("truth_depth needs intrinsics (K.txt or a (3, 3) matrix)")
+            depth = _load_depth(truth_depth)
+            k = (np.loadtxt(intrinsics) if isinstance(intrinsics, (str, os.PathLike))
+                 else intrinsics)
+            dm = _truth_mask(truth_mask, depth.shape)
+            pts, _ = evaluate.points_from_depth(depth, k, mask=dm)
+        comp = evaluate.compare_to_scan(height, pts, mask=mask, normals=normals,
+                                        target_normals=scan_normals, trim=0.95)
         maps = {"height error": comp.height_error}
         if normals is not None:
             maps["angular error"] = comp.angular_error
@@ -172,7 +189,7 @@ def write_report(
                                  units={k: v for k, v in units.items() if k in maps},
                                  path=files / "scan_error_maps.png")
         errors.append(_figure(rel(files / "scan_error_maps.png"),
-                              "errors against the depth scan after scaled ICP", wide=True))
+                              f"errors against the {what} after scaled ICP", wide=True))
         errors.append(_table([
             ("RMS height error (scan units)", comp.rms_height),
             ("mean |height error| (scan units)", comp.mean_abs_height),
