@@ -285,33 +285,34 @@ def test_read_scan_compares_a_mesh_in_its_own_unit_and_pose(face_scan, tmp_path,
     assert comp.median_angular > 0.05  # a faceted mesh is not the smooth truth
 
 
-def test_read_scan_names_what_it_cannot_read(tmp_path):
-    with pytest.raises(FileNotFoundError, match="no such file"):
-        ev.read_scan(tmp_path / "missing.ply")
-    (tmp_path / "scan.vtk").write_text("# vtk DataFile\n")
-    with pytest.raises(ValueError, match=r"scan.vtk is not a scan format.*\.ply"):
-        ev.read_scan(tmp_path / "scan.vtk")
-    (tmp_path / "four.txt").write_text("0 0 0 1\n1 0 0 1\n0 1 0 1\n")
-    with pytest.raises(ValueError, match=r"four.txt, line 1: 4 numbers; expected 3"):
-        ev.read_scan(tmp_path / "four.txt")
-    (tmp_path / "ragged.txt").write_text("0 0 0\n1 0 0 0 0 1\n0 1 0\n")
-    with pytest.raises(ValueError, match=r"ragged.txt, line 2: 6 numbers"):
-        ev.read_scan(tmp_path / "ragged.txt")
-    (tmp_path / "words.csv").write_text("x,y,z\n0,0,0\n")
-    with pytest.raises(ValueError, match=r"words.csv, line 1: not numbers: 'x,y,z'"):
-        ev.read_scan(tmp_path / "words.csv")
-    (tmp_path / "two.xyz").write_text("0 0 0\n1 0 0\n")
-    with pytest.raises(ValueError, match="two.xyz has 2 points; ICP needs at least 3"):
-        ev.read_scan(tmp_path / "two.xyz")
-    np.save(tmp_path / "nan.npy", np.array([[0, 0, 0], [1, 0, np.nan], [0, 1, 0.0]]))
-    with pytest.raises(ValueError, match="nan.npy has NaN/Inf coordinates"):
-        ev.read_scan(tmp_path / "nan.npy")
-    np.save(tmp_path / "flat.npy", np.zeros((5, 4)))
-    with pytest.raises(ValueError, match=r"shape \(5, 4\); expected \(M, 3\)"):
-        ev.read_scan(tmp_path / "flat.npy")
-    (tmp_path / "broken.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement")
-    with pytest.raises(ValueError, match="cannot read .*broken.ply"):
-        ev.read_scan(tmp_path / "broken.ply")
+_BAD_SCANS = [  # file name, contents (None: no file), error, message
+    ("missing.ply", None, FileNotFoundError, "no such file"),
+    ("scan.vtk", "# vtk DataFile\n", ValueError, r"scan.vtk is not a scan format.*\.ply"),
+    ("four.txt", "0 0 0 1\n1 0 0 1\n0 1 0 1\n", ValueError,
+     r"four.txt, line 1: 4 numbers; expected 3"),
+    ("ragged.txt", "0 0 0\n1 0 0 0 0 1\n0 1 0\n", ValueError, r"ragged.txt, line 2: 6 numbers"),
+    ("words.csv", "x,y,z\n0,0,0\n", ValueError, r"words.csv, line 1: not numbers: 'x,y,z'"),
+    ("two.xyz", "0 0 0\n1 0 0\n", ValueError, "two.xyz has 2 points; ICP needs at least 3"),
+    ("nan.npy", np.array([[0, 0, 0], [1, 0, np.nan], [0, 1, 0.0]]), ValueError,
+     "nan.npy has NaN/Inf coordinates"),
+    ("flat.npy", np.zeros((5, 4)), ValueError, r"shape \(5, 4\); expected \(M, 3\)"),
+    ("broken.ply", b"ply\nformat binary_little_endian 1.0\nelement", ValueError,
+     "cannot read .*broken.ply"),
+]
+
+
+@pytest.mark.parametrize(("name", "contents", "error", "message"), _BAD_SCANS,
+                         ids=[row[0] for row in _BAD_SCANS])
+def test_read_scan_names_what_it_cannot_read(tmp_path, name, contents, error, message):
+    path = tmp_path / name
+    if isinstance(contents, str):
+        path.write_text(contents)
+    elif isinstance(contents, bytes):
+        path.write_bytes(contents)
+    elif contents is not None:
+        np.save(path, contents)
+    with pytest.raises(error, match=message):
+        ev.read_scan(path)
 
 
 def test_compare_to_a_whole_head_scan():
