@@ -253,7 +253,7 @@ def face_scan():
 
 @pytest.mark.parametrize("name", ["face.ply", "face.obj", "face.stl", "face.off",
                                   "inside_out.ply", "points.xyz", "points_normals.csv",
-                                  "points.npy"])
+                                  "points.npy", "range.abs", "range.abs.gz"])
 def test_read_scan_compares_a_mesh_in_its_own_unit_and_pose(face_scan, tmp_path, name):
     height, mask, normals, mesh = face_scan
     path = tmp_path / name
@@ -267,13 +267,17 @@ def test_read_scan_compares_a_mesh_in_its_own_unit_and_pose(face_scan, tmp_path,
         np.savetxt(path, mesh.vertices, header="x y z")
     elif name == "points_normals.csv":
         np.savetxt(path, np.c_[mesh.vertices, mesh.vertex_normals], delimiter=",")
+    elif name.startswith("range"):  # FRGC's layout; a row of 7 pixels more, with no data
+        _write_abs(path, np.concatenate([mesh.vertices, np.full((7, 3), -999999.0)]),
+                   np.arange(len(mesh.vertices) + 7) < len(mesh.vertices))
     else:
         np.save(path, mesh.vertices)
     points, scan_normals = ev.read_scan(path)
     assert points.shape == mesh.vertices.shape and points.dtype == np.float64
     np.testing.assert_allclose(np.sort(points, axis=0), np.sort(mesh.vertices, axis=0),
                                atol=1e-4)  # STL and PLY store float32
-    assert (scan_normals is None) == (name in ("points.xyz", "points.npy"))
+    assert (scan_normals is None) == (name in ("points.xyz", "points.npy", "range.abs",
+                                               "range.abs.gz"))
     comp = ev.compare_to_scan(height, points, mask=mask, normals=normals,
                               target_normals=scan_normals, trim=0.95)
     np.testing.assert_allclose(comp.icp.scale, 0.6, rtol=1e-3)
@@ -283,6 +287,21 @@ def test_read_scan_compares_a_mesh_in_its_own_unit_and_pose(face_scan, tmp_path,
     # turned to face the camera, where they would read as 180 degrees off.
     assert comp.median_angular < (0.5 if scan_normals is not None else 1.2)
     assert comp.median_angular > 0.05  # a faceted mesh is not the smooth truth
+
+
+def _write_abs(path, xyz, flags, rows=1):
+    """An FRGC range image: `rows` rows of the pixels, each a flag and X Y Z."""
+    import gzip
+
+    lines = [f"{rows} rows", f"{len(flags) // rows} columns", "pixels (flag X Y Z):",
+             " ".join(str(int(f)) for f in flags)]
+    lines += [" ".join(f"{v:.6f}" for v in xyz[:, i]) for i in range(3)]
+    text = "\n".join(lines) + "\n"
+    if path.suffix == ".gz":
+        with gzip.open(path, "wt") as f:
+            f.write(text)
+    else:
+        path.write_text(text)
 
 
 _BAD_SCANS = [  # file name, contents (None: no file), error, message
@@ -298,6 +317,9 @@ _BAD_SCANS = [  # file name, contents (None: no file), error, message
     ("flat.npy", np.zeros((5, 4)), ValueError, r"shape \(5, 4\); expected \(M, 3\)"),
     ("broken.ply", b"ply\nformat binary_little_endian 1.0\nelement", ValueError,
      "cannot read .*broken.ply"),
+    ("headless.abs", "1 0 0 1\n", ValueError, r"does not start as a range image does"),
+    ("short.abs", "2 rows\n2 columns\npixels (flag X Y Z):\n1 1 1 1\n0 1 0 1\n",
+     ValueError, r"short.abs holds 8 values; 2 rows x 2 columns need 16"),
 ]
 
 

@@ -158,9 +158,10 @@ def report_parser(sub) -> None:
     truth = p.add_mutually_exclusive_group()
     truth.add_argument("--truth-depth", help="ground-truth depth (.npz key depth_gt, or .npy)")
     truth.add_argument("--truth-scan", metavar="FILE",
-                       help="ground-truth scan: a mesh (.ply, .obj, .stl, .off, .glb) or points "
-                       "(.xyz/.txt/.csv: x y z [nx ny nz] per line) in any unit, axes roughly "
-                       "the camera's (x right, y up, z toward it); aligned by scaled ICP")
+                       help="ground-truth scan: a mesh (.ply, .obj, .stl, .off, .glb), points "
+                       "(.xyz/.txt/.csv: x y z [nx ny nz] per line) or a range image (.abs) in "
+                       "any unit, axes roughly the camera's (x right, y up, z toward it); "
+                       "aligned by scaled ICP")
     p.add_argument("--intrinsics", help="K.txt camera matrix for --truth-depth")
     p.add_argument("--truth-mask", help="mask image for the ground truth")
     p.add_argument("--out", help="HTML path (default RUN_DIR/report.html)")

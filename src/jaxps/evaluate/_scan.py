@@ -37,7 +37,10 @@ __all__ = ["SCAN_EXTENSIONS", "ScanComparison", "compare_to_scan", "l2_error", "
 # Meshes and point clouds trimesh reads, then text and numpy point lists (`read_scan`).
 _MESH_EXTENSIONS = (".ply", ".obj", ".stl", ".off", ".glb")
 _TEXT_EXTENSIONS = (".xyz", ".txt", ".csv", ".asc")
-SCAN_EXTENSIONS: tuple[str, ...] = (*_MESH_EXTENSIONS, *_TEXT_EXTENSIONS, ".npy")
+# Range images of a structured-light scanner on its pixel grid (FRGC's Minolta Vivid scans).
+_RANGE_EXTENSIONS = (".abs", ".abs.gz")
+SCAN_EXTENSIONS: tuple[str, ...] = (*_MESH_EXTENSIONS, *_TEXT_EXTENSIONS, ".npy",
+                                    *_RANGE_EXTENSIONS)
 
 
 class ScanComparison(NamedTuple):
@@ -78,6 +81,11 @@ def read_scan(
     - Text (`.xyz`, `.txt`, `.csv`, `.asc`): `x y z` or `x y z nx ny nz` per line, separated by
       spaces, tabs, commas or semicolons; lines starting with `#` are skipped.
     - `.npy`: an `(M, 3)` or `(M, 6)` array in the same layout.
+    - A range image (`.abs`, or gzipped `.abs.gz`), as the Face Recognition Grand Challenge
+      distributes its 3-D face scans (Phillips et al., "Overview of the Face Recognition Grand
+      Challenge", CVPR 2005): a line "R rows", a line "C columns", a line
+      "pixels (flag X Y Z):", then R x C flags, X, Y and Z values in row order; the points
+      whose flag is not 0.
 
     Any length unit will do, since `compare_to_scan` fits a scale. The axes must be roughly
     the camera's of DESIGN.md (x right, y up, z toward the camera): ICP corrects a few degrees,
@@ -89,17 +97,20 @@ def read_scan(
 
     **Raises:** `FileNotFoundError` for a missing file; `ValueError` naming the file for an
     extension not in `SCAN_EXTENSIONS`, a file with fewer than 3 points, non-finite
-    coordinates, or text rows of other than 3 or 6 numbers.
+    coordinates, text rows of other than 3 or 6 numbers, or a range image whose header or
+    count of values is not that of its grid.
     """
     p = pathlib.Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"scan: no such file {p}")
-    ext = p.suffix.lower()
+    ext = ".abs.gz" if p.name.lower().endswith(".abs.gz") else p.suffix.lower()
     if ext not in SCAN_EXTENSIONS:
         raise ValueError(f"scan: {p} is not a scan format jaxps reads "
                          f"({', '.join(SCAN_EXTENSIONS)})")
     if ext in _MESH_EXTENSIONS:
         points, normals = _read_mesh(p)
+    elif ext in _RANGE_EXTENSIONS:
+        points, normals = _read_abs(p), None
     else:
         table = np.load(p) if ext == ".npy" else _read_table(p)
         table = np.asarray(table, np.float64)
@@ -136,6 +147,34 @@ def _read_mesh(path: pathlib.Path):
         if normals.shape == points.shape:
             return points, normals
     return points, None
+
+
+def _read_abs(path: pathlib.Path) -> np.ndarray:
+    """The valid points of an FRGC range image (`read_scan`), `(M, 3)` float64."""
+    import gzip
+
+    opener = gzip.open if path.suffix.lower() == ".gz" else open
+    try:
+        with opener(path, "rt", encoding="utf-8-sig") as f:
+            header = [f.readline().strip() for _ in range(3)]
+            body = f.read()
+    except (OSError, UnicodeDecodeError) as err:
+        raise ValueError(f"scan: cannot read {path}: {err}") from err
+    found = [re.fullmatch(r"(\d+)\s+" + word, line, re.IGNORECASE)
+             for line, word in zip(header, ("rows", "columns"))]
+    if not all(found) or not header[2].lower().startswith("pixels"):
+        raise ValueError(f"scan: {path} does not start as a range image does ('R rows', "
+                         f"'C columns', 'pixels (flag X Y Z):'), but with {header!r}")
+    rows, cols = (int(m.group(1)) for m in found)
+    try:
+        values = np.array(body.split(), np.float64)
+    except ValueError:
+        raise ValueError(f"scan: {path} holds a value that is not a number") from None
+    if values.size != 4 * rows * cols:
+        raise ValueError(f"scan: {path} holds {values.size} values; {rows} rows x {cols} "
+                         f"columns need {4 * rows * cols} (a flag, X, Y and Z per pixel)")
+    flags, xyz = values[: rows * cols], values[rows * cols:].reshape(3, -1)
+    return xyz[:, flags != 0].T.copy()
 
 
 def _read_table(path: pathlib.Path) -> np.ndarray:
