@@ -253,7 +253,7 @@ def face_scan():
 
 @pytest.mark.parametrize("name", ["face.ply", "face.obj", "face.stl", "face.off",
                                   "inside_out.ply", "points.xyz", "points_normals.csv",
-                                  "points.npy", "range.abs", "range.abs.gz"])
+                                  "points.npy"])
 def test_read_scan_compares_a_mesh_in_its_own_unit_and_pose(face_scan, tmp_path, name):
     height, mask, normals, mesh = face_scan
     path = tmp_path / name
@@ -267,17 +267,13 @@ def test_read_scan_compares_a_mesh_in_its_own_unit_and_pose(face_scan, tmp_path,
         np.savetxt(path, mesh.vertices, header="x y z")
     elif name == "points_normals.csv":
         np.savetxt(path, np.c_[mesh.vertices, mesh.vertex_normals], delimiter=",")
-    elif name.startswith("range"):  # FRGC's layout; a row of 7 pixels more, with no data
-        _write_abs(path, np.concatenate([mesh.vertices, np.full((7, 3), -999999.0)]),
-                   np.arange(len(mesh.vertices) + 7) < len(mesh.vertices))
     else:
         np.save(path, mesh.vertices)
     points, scan_normals = ev.read_scan(path)
     assert points.shape == mesh.vertices.shape and points.dtype == np.float64
     np.testing.assert_allclose(np.sort(points, axis=0), np.sort(mesh.vertices, axis=0),
                                atol=1e-4)  # STL and PLY store float32
-    assert (scan_normals is None) == (name in ("points.xyz", "points.npy", "range.abs",
-                                               "range.abs.gz"))
+    assert (scan_normals is None) == (name in ("points.xyz", "points.npy"))
     comp = ev.compare_to_scan(height, points, mask=mask, normals=normals,
                               target_normals=scan_normals, trim=0.95)
     np.testing.assert_allclose(comp.icp.scale, 0.6, rtol=1e-3)
@@ -302,6 +298,32 @@ def _write_abs(path, xyz, flags, rows=1):
             f.write(text)
     else:
         path.write_text(text)
+
+
+@pytest.mark.parametrize(("name", "axes"), [
+    ("camera_frame.abs", (1, 1, 1)),  # x right, y up, z toward the camera
+    ("y_down.abs.gz", (1, -1, -1)),  # OpenCV's: y down the rows, z forward; gzipped
+    ("x_left.abs", (-1, 1, -1)),
+    ("both.abs", (-1, -1, 1)),
+])
+def test_read_scan_turns_a_range_image_into_the_camera_frame(face_scan, tmp_path, name, axes):
+    # An FRGC-style range image of the synthetic face, 0.25 mm a pixel at 1000 mm, its pixels
+    # outside the face flagged 0, written in a scanner frame whose axes run other ways: read
+    # back, it is the camera-frame scan, whatever the scanner's axes.
+    height, mask, normals, _ = face_scan
+    h, w = height.shape
+    k = np.array([[4000.0, 0, (w - 1) / 2], [0, 4000.0, (h - 1) / 2], [0, 0, 1]])
+    points, pixels = ev.points_from_depth(np.where(mask, 1000.0 - 0.25 * height, np.nan), k)
+    index = pixels[:, 0] * w + pixels[:, 1]
+    grid = np.full((h * w, 3), -999999.0)
+    grid[index] = points * np.array(axes)
+    _write_abs(tmp_path / name, grid, np.isin(np.arange(h * w), index), rows=h)
+    read, scan_normals = ev.read_scan(tmp_path / name)
+    assert scan_normals is None
+    np.testing.assert_allclose(read, points, atol=1e-4)  # the file holds 6 decimals
+    comp = ev.compare_to_scan(height, read, mask=mask, normals=normals, trim=0.95)
+    np.testing.assert_allclose(comp.icp.scale, 0.25, rtol=0.01)
+    assert comp.rms_height < 0.01  # mm
 
 
 _BAD_SCANS = [  # file name, contents (None: no file), error, message

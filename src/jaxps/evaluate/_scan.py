@@ -85,11 +85,13 @@ def read_scan(
       distributes its 3-D face scans (Phillips et al., "Overview of the Face Recognition Grand
       Challenge", CVPR 2005): a line "R rows", a line "C columns", a line
       "pixels (flag X Y Z):", then R x C flags, X, Y and Z values in row order; the points
-      whose flag is not 0.
+      whose flag is not 0. The grid shows which way the scanner's axes run, so the points are
+      turned into the camera frame (by 180 degrees about an axis) when its y runs down the
+      rows (OpenCV's frame) or its x against the columns.
 
     Any length unit will do, since `compare_to_scan` fits a scale. The axes must be roughly
     the camera's of DESIGN.md (x right, y up, z toward the camera): ICP corrects a few degrees,
-    not a scan stored with z up.
+    not a mesh stored with z up.
 
     **Returns:** `(points (M, 3), normals (M, 3) or None)` as float64; normals are unit length
     and `None` when the file has none (or any of them is zero or not finite), in which case
@@ -174,7 +176,17 @@ def _read_abs(path: pathlib.Path) -> np.ndarray:
         raise ValueError(f"scan: {path} holds {values.size} values; {rows} rows x {cols} "
                          f"columns need {4 * rows * cols} (a flag, X, Y and Z per pixel)")
     flags, xyz = values[: rows * cols], values[rows * cols:].reshape(3, -1)
-    return xyz[:, flags != 0].T.copy()
+    valid = np.flatnonzero(flags != 0)
+    points = xyz[:, valid].T.copy()
+    # The grid says which way the scanner's axes run. The camera frame has x growing with the
+    # column and y falling with the row; a frame with y down the rows (OpenCV's, z forward)
+    # or x against the columns is turned by 180 degrees about the axis that agrees, which
+    # keeps a right-handed frame right-handed.
+    row, col = np.divmod(valid, cols)
+    x_right = np.cov(points[:, 0], col)[0, 1] >= 0 if len(valid) > 1 else True
+    y_up = np.cov(points[:, 1], row)[0, 1] <= 0 if len(valid) > 1 else True
+    flip = np.array([not x_right, not y_up, x_right != y_up])  # two axes or none
+    return np.where(flip, -points, points)
 
 
 def _read_table(path: pathlib.Path) -> np.ndarray:
