@@ -15,7 +15,8 @@ OUTPUTS = {
     "near_lamps.py": ["near_lamps.png"],
     "tutorial_yaleb.py": ["tutorial_yaleb.png"],
     "icp_diligent.py": ["icp_bear.png"],
-    "report_demo.py": ["run/report.html", "run/report_files/normal_error_maps.png"],
+    "report_demo.py": ["run/report.html", "run/report_files/normal_error_maps.png",
+                       "run/report_files/scan_error_maps.png"],
 }
 SCRIPTS = sorted(p.name for p in EXAMPLES.glob("*.py") if not p.name.startswith("_"))
 
