@@ -383,3 +383,19 @@ def test_compare_to_a_whole_head_scan():
         np.testing.assert_allclose(comp.icp.scale, 1.0, rtol=1e-3)
         assert comp.rms_height < 0.02  # mm; the mesh's facets are about 3 mm across
         assert comp.median_angular < 1.0
+
+
+def test_read_scan_reads_what_jaxps_reconstruct_writes(face_scan, tmp_path):
+    # mesh.ply (faces, vertex colours) and points.ply (a cloud with the run's normals) of a
+    # run read back as its points, so that one run can be compared with another.
+    from jaxps.report._mesh import write_meshes
+
+    height, mask, normals, _ = face_scan
+    write_meshes(tmp_path, height, mask, np.full(mask.shape, 0.5), normals, obj=False)
+    mesh_points, mesh_normals = ev.read_scan(tmp_path / "mesh.ply")
+    cloud_points, cloud_normals = ev.read_scan(tmp_path / "points.ply")
+    assert mesh_points.shape == cloud_points.shape == (mask.sum(), 3)
+    np.testing.assert_allclose(np.sort(mesh_points, axis=0), np.sort(cloud_points, axis=0),
+                               atol=1e-4)
+    np.testing.assert_allclose(cloud_normals, normals[mask], atol=1e-5)  # row-major order
+    assert np.median(np.sum(mesh_normals * normals[mask], axis=-1)) > 0.999

@@ -142,12 +142,13 @@ def _read_mesh(path: pathlib.Path):
     points = np.asarray(geometry.vertices, np.float64)
     if isinstance(geometry, trimesh.Trimesh) and len(geometry.faces):
         return points, np.asarray(geometry.vertex_normals, np.float64)
+    # A PLY point cloud's own columns: a dict of arrays (ASCII) or a record array (binary).
     vertex = geometry.metadata.get("_ply_raw", {}).get("vertex", {}).get("data", {})
-    if isinstance(vertex, dict) and all(k in vertex for k in ("nx", "ny", "nz")):
-        normals = np.concatenate([np.reshape(vertex[k], (-1, 1)) for k in ("nx", "ny", "nz")],
-                                 axis=1).astype(np.float64)
+    names = (vertex.dtype.names or ()) if isinstance(vertex, np.ndarray) else vertex
+    if all(k in names for k in ("nx", "ny", "nz")):
+        normals = np.stack([np.ravel(vertex[k]) for k in ("nx", "ny", "nz")], axis=1)
         if normals.shape == points.shape:
-            return points, normals
+            return points, normals.astype(np.float64)
     return points, None
 
 

@@ -2,10 +2,11 @@
 
 The page shows the normal map, the albedo, the height map shaded from the upper left, the
 per-pixel status, error maps against ground truth where it is given (a normal map compared pixel
-by pixel; a depth map or a scan file compared after ICP, as in `jaxps.evaluate.compare_to_scan`), the
-Lambertian check plot ($I/\\rho$ against $\\cos\\theta$) where the run has one, and the
-timings and settings from `summary.json`. Figures go to `RUN_DIR/report_files/` and are linked
-relatively, so the folder can be moved or served as it is.
+by pixel; a depth map or a scan file compared after ICP, as in
+`jaxps.evaluate.compare_to_scan`), the Lambertian check plot ($I/\\rho$ against
+$\\cos\\theta$) where the run has one, and the timings and settings from `summary.json`.
+Figures go to `RUN_DIR/report_files/` and are linked relatively, so the folder can be moved or
+served as it is.
 """
 
 from __future__ import annotations
