@@ -254,7 +254,8 @@ def compare_to_scan(
     - `normals`: `(H, W, 3)` reconstructed normals for the angular and $\\ell_2$ maps (default:
       none, those maps stay 0).
     - `target_normals`: `(M, 3)` scan normals (default: `estimate_normals(target)`), e.g. a
-      mesh's from `read_scan`; each one paired with a pixel is turned to face the camera.
+      mesh's from `read_scan`; all are turned round if those paired with pixels face away
+      from the camera on the whole (a mesh wound inside out).
     - `pixel_size`: the reconstruction's pixel size in its height unit.
     - `scale`: fit a global scale in ICP (default True).
     - `**icp_options`: passed to `icp` (default here: `init="centroid"`).
@@ -284,11 +285,13 @@ def compare_to_scan(
     _, idx = cKDTree(tgt).query(res.aligned.astype(np.float64))
     ref = tn[idx].astype(np.float64)
     ref /= np.maximum(np.linalg.norm(ref, axis=-1, keepdims=True), 1e-12)
-    # A point the camera sees faces it: each paired scan normal is turned toward the camera's
-    # axis, carried into the scan's frame by the ICP rotation. A mesh wound inside out would
-    # otherwise read as 180-degree errors and flip the sign of the height error.
-    view = np.asarray(res.rotation, np.float64)[:, 2]
-    ref = np.where((ref @ view)[:, None] < 0, -ref, ref)
+    # The surface the camera sees faces it, so its normals do on the whole (the camera's axis
+    # carried into the scan's frame by the ICP rotation). A mesh wound inside out has them
+    # the other way round, which would read as 180-degree errors and flip the sign of the
+    # height error: turn them all. (Not each on its own: at a silhouette, seen in
+    # perspective or after an ICP tilt, a true normal may lean away from the axis.)
+    if np.median(ref @ np.asarray(res.rotation, np.float64)[:, 2]) < 0:
+        ref = -ref
     signed = np.sum((res.aligned.astype(np.float64) - tgt[idx]) * ref, axis=-1)
 
     h, w = z.shape
