@@ -278,9 +278,9 @@ def test_read_scan_compares_a_mesh_in_its_own_unit_and_pose(face_scan, tmp_path,
                               target_normals=scan_normals, trim=0.95)
     np.testing.assert_allclose(comp.icp.scale, 0.6, rtol=1e-3)
     assert comp.rms_height < 1e-3  # scan units
-    # The mesh's own normals (0.37-0.38 degrees from the truth here) are closer than normals
-    # estimated from its points (0.86), also when its faces are wound inside out: they are
-    # turned to face the camera, where they would read as 180 degrees off.
+    # The mesh's own normals are closer to the truth than normals estimated from its points,
+    # also when its faces are wound inside out: they are turned round, where they would read
+    # as 180 degrees off.
     assert comp.median_angular < (0.5 if scan_normals is not None else 1.2)
     assert comp.median_angular > 0.05  # a faceted mesh is not the smooth truth
 
