@@ -160,6 +160,11 @@ def test_report_against_a_scanned_mesh(synthetic_run, tmp_path):
     with pytest.raises(SystemExit):  # one ground-truth surface at a time
         main(["report", str(out), "--truth-scan", str(tmp_path / "scan.ply"), "--truth-depth",
               str(tmp_path / "depth.npz")])
+    heightless = tmp_path / "heightless"
+    heightless.mkdir()
+    (heightless / "normals.png").write_bytes((out / "normals.png").read_bytes())
+    with pytest.raises(ValueError, match="truth_scan: .*heightless has no height.npy"):
+        report.write_report(heightless, truth_scan=tmp_path / "scan.ply")
 
 
 def _cell(text: str, header: str) -> float:

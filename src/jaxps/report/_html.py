@@ -88,7 +88,8 @@ def write_report(
     **Returns:** the path of the HTML file.
 
     **Raises:** `FileNotFoundError` when `run_dir` has neither `normals.png` nor `summary.json`;
-    `ValueError` when both `truth_depth` and `truth_scan` are given.
+    `ValueError` when both `truth_depth` and `truth_scan` are given, or either without the
+    run's `height.npy`.
     """
     if truth_depth is not None and truth_scan is not None:
         raise ValueError("truth_depth and truth_scan: give one ground-truth surface, not both")
@@ -164,7 +165,10 @@ def write_report(
                               for k, v in stats.items() if k != "pixels"]
                              + [("mean l2-norm error", float(l2[tm].mean())),
                                 ("pixels compared", int(stats["pixels"]))]))
-    if (truth_depth is not None or truth_scan is not None) and height is not None:
+    if (truth_depth is not None or truth_scan is not None) and height is None:
+        raise ValueError(f"truth_{'depth' if truth_depth is not None else 'scan'}: {run} has "
+                         "no height.npy to compare with a surface")
+    if truth_depth is not None or truth_scan is not None:
         scan_normals, what = None, "depth scan"
         if truth_scan is not None:
             if isinstance(truth_scan, (str, os.PathLike)):
