@@ -399,3 +399,22 @@ def test_read_scan_reads_what_jaxps_reconstruct_writes(face_scan, tmp_path):
                                atol=1e-4)
     np.testing.assert_allclose(cloud_normals, normals[mask], atol=1e-5)  # row-major order
     assert np.median(np.sum(mesh_normals * normals[mask], axis=-1)) > 0.999
+
+
+@pytest.mark.parametrize("turn", [("x", 90), ("y", 180), ("z", 90)])
+def test_compare_to_scan_names_a_scan_whose_axes_are_turned(face_scan, turn):
+    # A scan stored with other axes (z up, say): scaled ICP shrinks the reconstruction onto a
+    # point of it, which it then "fits" to round-off. Before, that came back with a scale near
+    # 0 (negative, or "converged") and height errors near 0, or stopped in SciPy's "'x' must
+    # be finite"; now ICP stops there and the comparison says what is wrong.
+    height, mask, normals, mesh = face_scan
+    scan = mesh.vertices @ Rotation.from_euler(*turn, degrees=True).as_matrix().T
+    with pytest.raises(ValueError, match=r"shrank the reconstruction onto a point.*z up"):
+        ev.compare_to_scan(height, scan, mask=mask, normals=normals, trim=0.95)
+    points, _ = ev.points_from_height(height, mask=mask)
+    res = ev.icp(points, scan, scale=True, init="centroid", trim=0.95)
+    assert not res.converged and 0 < res.scale < 0.01 * 0.6
+    # Turned by less, the same scan is found: ICP's basin is wide enough for a tilted scanner.
+    tilted = mesh.vertices @ Rotation.from_euler("x", 30, degrees=True).as_matrix().T
+    comp = ev.compare_to_scan(height, tilted, mask=mask, normals=normals, trim=0.95)
+    assert comp.icp.converged and comp.rms_height < 1e-3

@@ -27,8 +27,8 @@ from ._scan import SCAN_EXTENSIONS, ScanComparison, compare_to_scan, l2_error, r
 
 __all__ = [
     "ICP_METHODS",
-    "ICPResult",
     "SCAN_EXTENSIONS",
+    "ICPResult",
     "ScanComparison",
     "angular_error",
     "angular_stats",

@@ -50,6 +50,11 @@ __all__ = [
 ]
 
 ICP_METHODS: tuple[str, ...] = ("point_to_point", "point_to_plane")
+# With `scale=True`, ICP stops (not converged) once the scale has fallen below this fraction of
+# the ratio of the clouds' spreads: the source has collapsed toward a point of the target,
+# which it then "fits" to round-off. Seen from wrong starting orientations (a scan stored with
+# its axes turned), where the scale fell to 1e-8 of that ratio.
+_COLLAPSED = 1e-2
 
 
 class ICPResult(NamedTuple):
@@ -63,7 +68,7 @@ class ICPResult(NamedTuple):
     - `inliers`: `(N,)` bool, the pairs kept by the last step (trim / `max_distance`).
     - `rms`: RMS of `distances` over `inliers` (the quantity ICP minimises, point-to-point).
     - `steps`: steps taken; `converged`: whether the relative change of the error fell below
-      `tol` before `max_steps`.
+      `tol` before `max_steps` (False also when a scaled fit collapsed: `icp`).
     """
 
     rotation: Float[np.ndarray, "3 3"]
@@ -88,6 +93,15 @@ def _check_points(points, name: str) -> np.ndarray:
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} has NaN/Inf coordinates: drop them (e.g. with a mask) first")
     return arr
+
+
+def _spread_ratio(source, target) -> float:
+    """The target's RMS distance from its centroid over the source's: the scale that makes the
+    two clouds equally large (`icp`'s start with `init="centroid"` and `scale=True`)."""
+    src, tgt = (np.asarray(a, np.float64) for a in (source, target))
+    spread_s = np.sqrt(np.mean(np.sum((src - src.mean(axis=0)) ** 2, axis=-1)))
+    spread_t = np.sqrt(np.mean(np.sum((tgt - tgt.mean(axis=0)) ** 2, axis=-1)))
+    return float(spread_t / max(spread_s, np.finfo(np.float64).tiny))
 
 
 def points_from_height(
@@ -287,7 +301,10 @@ def icp(
     ICP is local: it converges to the right answer from a misalignment of a few degrees and a
     fraction of the object's size. `init="centroid"` first moves the source's centroid onto
     the target's (and, with `scale=True`, matches their RMS spread), which brings a height map
-    in pixel units near a scan in millimetres.
+    in pixel units near a scan in millimetres. With `scale=True` it stops, not converged, when
+    the scale falls below 1/100 of the ratio of the clouds' spreads: from a poor start
+    (such as a scan whose axes are turned) the source can shrink onto a point of the target,
+    which it then fits to round-off. A step changes the scale by a factor of 1/2 to 2 at most.
 
     **Arguments:**
     - `source`: `(N, 3)` points to move (e.g. `points_from_height` of a reconstruction).
@@ -345,13 +362,10 @@ def icp(
     src64 = src.astype(np.float64)
     tgt_j = jnp.asarray(tgt.astype(np.float64) - origin, jnp.float32)
     s, rot, t = 1.0, np.eye(3), np.zeros(3)
+    matched = _spread_ratio(src64, tgt) if scale else 0.0
     if init == "centroid":
-        ms, mt = src64.mean(axis=0), tgt.astype(np.float64).mean(axis=0)
-        if scale:
-            spread_s = np.sqrt(np.mean(np.sum((src64 - ms) ** 2, axis=-1)))
-            spread_t = np.sqrt(np.mean(np.sum((tgt - mt) ** 2, axis=-1)))
-            s = float(spread_t / max(spread_s, np.finfo(np.float64).tiny))
-        t = mt - s * ms
+        s = matched if scale else 1.0
+        t = tgt.astype(np.float64).mean(axis=0) - s * src64.mean(axis=0)
 
     n_keep = max(3, int(np.ceil(trim * src.shape[0])))
 
@@ -374,8 +388,8 @@ def icp(
     steps = 0
     while True:
         moved, dist, idx, keep, rms = pairs(s, rot, t)
-        if not np.isfinite(rms):
-            break
+        if not np.isfinite(rms) or s < _COLLAPSED * matched:
+            break  # a source shrunk onto a point of the target fits it "exactly": no answer
         if rms <= floor or abs(prev - rms) <= tol * rms:
             converged = True
             break
@@ -389,7 +403,10 @@ def icp(
             ds, dr, dt = _step_point_to_point(p, q, w, with_scale=scale)
         else:
             ds, dr, dt = _step_point_to_plane(p, q, nrm_j[idx], w, with_scale=scale)
-        ds, dr, dt = float(ds), np.asarray(dr, np.float64), np.asarray(dt, np.float64)
+        # A step may at most halve or double the scale: the linearised scale 1 + delta can
+        # otherwise turn negative on a poor pairing.
+        ds = float(np.clip(ds, 0.5, 2.0))
+        dr, dt = np.asarray(dr, np.float64), np.asarray(dt, np.float64)
         # Steps act on centred points: x -> ds dr (x - o) + o + dt.
         dt = dt + origin - ds * dr @ origin
         s, rot, t = ds * s, dr @ rot, ds * dr @ t + dt

@@ -30,7 +30,14 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
-from ._icp import ICPResult, estimate_normals, icp, points_from_height
+from ._icp import (
+    _COLLAPSED,
+    ICPResult,
+    _spread_ratio,
+    estimate_normals,
+    icp,
+    points_from_height,
+)
 
 __all__ = ["SCAN_EXTENSIONS", "ScanComparison", "compare_to_scan", "l2_error", "read_scan"]
 
@@ -261,6 +268,9 @@ def compare_to_scan(
     - `**icp_options`: passed to `icp` (default here: `init="centroid"`).
 
     **Returns:** a `ScanComparison` on the reconstruction's `(H, W)` grid.
+
+    **Raises:** `ValueError` for bad shapes, or when ICP shrank the reconstruction onto a point
+    of the scan (`icp`'s collapse, from a scan whose axes are not the camera's).
     """
     z = np.asarray(height)
     if z.ndim != 2:
@@ -279,6 +289,13 @@ def compare_to_scan(
                              f"got {tn.shape}")
     icp_options.setdefault("init", "centroid")
     res = icp(src, tgt, scale=scale, target_normals=tn, **icp_options)
+    matched = _spread_ratio(src, tgt)
+    if scale and res.scale < _COLLAPSED * matched:
+        raise ValueError(
+            f"target: ICP shrank the reconstruction onto a point of the scan (scale "
+            f"{res.scale:.3g}, where the two clouds' spreads give {matched:.3g}), "
+            "so there is no alignment to compare: are the scan's axes the camera's (x right, y "
+            "up, z toward the camera)? A mesh stored with z up needs turning first")
 
     from scipy.spatial import cKDTree
 
