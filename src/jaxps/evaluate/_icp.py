@@ -53,7 +53,7 @@ ICP_METHODS: tuple[str, ...] = ("point_to_point", "point_to_plane")
 # With `scale=True`, ICP stops (not converged) once the scale has fallen below this fraction of
 # the ratio of the clouds' spreads: the source has collapsed toward a point of the target,
 # which it then "fits" to round-off. Seen from wrong starting orientations (a scan stored with
-# its axes turned), where the scale fell to 1e-8 of that ratio.
+# its axes turned), where the scale fell by orders of magnitude.
 _COLLAPSED = 1e-2
 
 
