@@ -160,6 +160,13 @@ def test_report_against_a_scanned_mesh(synthetic_run, tmp_path):
     with pytest.raises(SystemExit):  # one ground-truth surface at a time
         main(["report", str(out), "--truth-scan", str(tmp_path / "scan.ply"), "--truth-depth",
               str(tmp_path / "depth.npz")])
+    upright = mesh.copy()  # stored with z up: refused, named by the report's argument
+    quarter = np.eye(4)
+    quarter[:3, :3] = cv2.Rodrigues(np.radians([90.0, 0.0, 0.0]))[0]
+    upright.apply_transform(quarter)
+    upright.export(tmp_path / "z_up.ply")
+    with pytest.raises(ValueError, match=r"^truth_scan: ICP shrank the reconstruction"):
+        report.write_report(out, truth_scan=tmp_path / "z_up.ply", out=tmp_path / "z.html")
     heightless = tmp_path / "heightless"
     heightless.mkdir()
     (heightless / "normals.png").write_bytes((out / "normals.png").read_bytes())

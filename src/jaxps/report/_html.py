@@ -184,8 +184,12 @@ def write_report(
                  else intrinsics)
             dm = _truth_mask(truth_mask, depth.shape)
             pts, _ = evaluate.points_from_depth(depth, k, mask=dm)
-        comp = evaluate.compare_to_scan(height, pts, mask=mask, normals=normals,
-                                        target_normals=scan_normals, trim=0.95)
+        try:
+            comp = evaluate.compare_to_scan(height, pts, mask=mask, normals=normals,
+                                            target_normals=scan_normals, trim=0.95)
+        except ValueError as err:  # named by the argument given here, not compare_to_scan's
+            which = "truth_scan" if truth_scan is not None else "truth_depth"
+            raise ValueError(f"{which}: {str(err).removeprefix('target: ')}") from err
         maps = {"height error": comp.height_error}
         if normals is not None:
             maps["angular error"] = comp.angular_error
