@@ -165,10 +165,10 @@ def write_report(
                               for k, v in stats.items() if k != "pixels"]
                              + [("mean l2-norm error", float(l2[tm].mean())),
                                 ("pixels compared", int(stats["pixels"]))]))
-    if (truth_depth is not None or truth_scan is not None) and height is None:
-        raise ValueError(f"truth_{'depth' if truth_depth is not None else 'scan'}: {run} has "
-                         "no height.npy to compare with a surface")
     if truth_depth is not None or truth_scan is not None:
+        which = "truth_scan" if truth_scan is not None else "truth_depth"
+        if height is None:
+            raise ValueError(f"{which}: {run} has no height.npy to compare with a surface")
         scan_normals, what = None, "depth scan"
         if truth_scan is not None:
             if isinstance(truth_scan, (str, os.PathLike)):
@@ -188,7 +188,6 @@ def write_report(
             comp = evaluate.compare_to_scan(height, pts, mask=mask, normals=normals,
                                             target_normals=scan_normals, trim=0.95)
         except ValueError as err:  # named by the argument given here, not compare_to_scan's
-            which = "truth_scan" if truth_scan is not None else "truth_depth"
             raise ValueError(f"{which}: {str(err).removeprefix('target: ')}") from err
         maps = {"height error": comp.height_error}
         if normals is not None:
