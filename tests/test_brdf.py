@@ -974,7 +974,7 @@ def test_fit_brdf_with_near_lamps_recovers_the_wrap_parameter():
         if name == "per_pixel":  # the training frames, re-rendered under the lamps
             again = np.asarray(jaxps.relight(model, f32(normals), f32(albedo), f32(l)))
             np.testing.assert_allclose(again[:, inside], images[:, inside], atol=1e-5)
-    print(got)  # (w, fit RMSE, relit RMS) each: `pytest -s -k near_lamps_recovers`
+    print(got)  # (w, fit RMSE, relit RMS) each: `pytest -s -n 0 -k near_lamps_recovers`
     # measured: w 0.3000, fit RMSE 4e-8, relit RMS 4e-8 per pixel; w 0.2245, 0.0025, 0.018
     # from the origin's directions
     assert abs(got["per_pixel"][0] - wrap) < 1e-3 and got["per_pixel"][2] < 1e-4, got
@@ -999,7 +999,7 @@ def test_score_relighting_with_near_lamps():
                            refine_normals=False, frame_gains=False)
     score = jaxps.score_relighting(model, images[test], normals, albedo, directions[test],
                                    mask=inside)
-    print(score.model["raw_30"], score.lambertian["raw_30"])  # pytest -s -k near_lamps
+    print(score.model["raw_30"], score.lambertian["raw_30"])  # pytest -s -n 0 -k near_lamps
     # measured: 1.1e-5 gray levels, against 12.3 for Lambert's law
     assert score.model["raw_30"] < 1e-3 and score.lambertian["raw_30"] > 1.0, score.model
     assert score.lights == {"30": 1, "60": 1}
@@ -1053,7 +1053,7 @@ def test_fit_brdf_per_pixel_lights_bad_input(scene):
         jaxps.brdf_features(normals, per_pixel[:, :, :-1])
 
 
-def test_cli_relight_with_near_light_positions(tmp_path, capsys):
+def test_cli_relight_with_near_light_positions(tmp_path):
     """`jaxps relight --light-positions --pixel-size`: a Lambertian face lit by lamps 1 m away
     (16-bit PNGs) relit under a distant (30, 10) light. With the lamps' positions the relit
     image matches the truth to the 8-bit PNG's rounding; with their directions from the origin
@@ -1084,14 +1084,13 @@ def test_cli_relight_with_near_light_positions(tmp_path, capsys):
         rms[name] = float(np.sqrt(np.mean((got - truth)[inside] ** 2)))
         if name != "distant":
             assert summary["near_lights"]["converged"], summary["near_lights"]
-    with capsys.disabled():
-        print(rms)  # `pytest -s -k cli_relight_with_near`
+    print(rms)  # `pytest -s -n 0 -k cli_relight_with_near`
     # measured: 0.030 from the origin's directions, 0.0010 with the lamps (lambertian) and
     # 0.0008 (the default wrap_ggx); one 8-bit step is about 0.0024 here
     assert rms["near"] < 0.003 and rms["near_default"] < 0.003 and rms["distant"] > 0.015, rms
 
 
-def test_cli_relight_near_lamps_with_face_crop(tmp_path, monkeypatch, capsys):
+def test_cli_relight_near_lamps_with_face_crop(tmp_path, monkeypatch):
     """`jaxps relight --crop-face` with near lamps: the relit image is of the crop, the lamps
     stay measured from the frame's centre (`"centre_px"`), and the crop relights the face as
     the whole frame does. The face sits off the camera axis in a larger frame; the face
@@ -1129,8 +1128,7 @@ def test_cli_relight_near_lamps_with_face_crop(tmp_path, monkeypatch, capsys):
                                        [(h0 - 1) / 2 - t, (w0 - 1) / 2 - l])
         err = relit / 255.0 * summary["png_scale"] - truth[t:t + ch, l:l + cw]
         rms[name] = float(np.sqrt(np.mean(err[full_mask[t:t + ch, l:l + cw]] ** 2)))
-    with capsys.disabled():
-        print(rms)  # `pytest -s -k relight_near_lamps_with_face_crop`
+    print(rms)  # `pytest -s -n 0 -k relight_near_lamps_with_face_crop`
     # measured: 0.0030 (crop), 0.0030 (whole), 0.0007 (crop, --intensities none): what the
     # default frontal strengths leave on this off-axis face (0.63 deg in the normals,
     # tests/test_cli.py's face-crop test)

@@ -96,7 +96,7 @@ def test_demo_height_lsq_beats_fc():
         dz = (np.asarray(jaxps.integrate(res.normals, mask=ok, method=method))
               - np.asarray(scene.height))[mask]
         rms[method] = float(np.sqrt(np.mean((dz - dz.mean()) ** 2)))
-    print(rms)  # pytest -s shows the figures
+    print(rms)  # pytest -s -n 0 shows the figures
     assert rms["lsq"] < 0.7 * rms["fc"], rms
 
 

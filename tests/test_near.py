@@ -84,7 +84,7 @@ def test_near_height_from_lsq_is_truer_than_from_fc():
     session: the same normals, and a height closer to the truth, since FC's periodic boundary
     bends the outline. Measured (face 128 px high, 1.6 mm pixels, five lamps 500 mm away,
     noise 0.005): normals' mean error 1.047 deg with either; height RMS error 0.050 mm with
-    `"lsq"`, 0.072 mm with `"fc"`. `pytest -s tests/test_near.py -k truer` prints them."""
+    `"lsq"`, 0.072 mm with `"fc"`. `pytest -s -n 0 tests/test_near.py -k truer` prints them."""
     surf = jaxps.synthetic.face_like(128)
     mask = np.asarray(surf.mask)
     positions = 500.0 * np.asarray(jaxps.synthetic.scanner_lights(20.0), np.float64)
