@@ -390,6 +390,32 @@ def test_relit_images_of_srgb_frames_are_srgb(tmp_path):
     assert np.median(np.abs(got - truth)[inside]) < 0.01
 
 
+def test_relight_leaves_samples_clipped_in_the_raw_frame_out_of_the_fit(tmp_path):
+    # One flash 1.6x the others clips 82 samples of its frame. Divided by its estimated
+    # intensity (about 1.4 against the others') they read below 1, where fit_brdf's own
+    # saturation level no longer finds them; until this test the distant-light fit took them in.
+    from jaxps import synthetic
+
+    scene = synthetic.render_scene(synthetic.face_like(48, 40), synthetic.scanner_lights(25.0))
+    images = np.asarray(scene.images)
+    images = images * np.array([1, 1.6, 1, 1, 1])[:, None, None] * (0.95 / images.max())
+    clipped = int((images >= 1).sum())
+    assert clipped == int((images[1] >= 1).sum()) > 50
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, img in enumerate(images):
+        cv2.imwrite(str(frames / f"f{k}.png"), np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16))
+    np.savetxt(frames / "lights.txt", np.asarray(scene.lights))
+    assert main(["relight", str(frames), "--lights", str(frames / "lights.txt"), "--method",
+                 "lambertian", "--no-register", "--light=30,10", "--circle-frames", "1",
+                 "--out", str(tmp_path / "relit")]) == 0
+    summary = json.loads((tmp_path / "relit" / "relight.json").read_text())
+    assert summary["intensities"]["per_frame"][1] > 1.3
+    # every sample of the solved pixels but the clipped ones, give or take a few
+    every = len(images) * summary["mask_pixels"]
+    assert every - clipped - 10 <= summary["fit"]["n_samples"] <= every - clipped
+
+
 def test_reconstruct_pages_of_a_multi_page_tiff(tmp_path):
     # `jaxps reconstruct stack.tif[0] ... stack.tif[4] --ambient stack.tif[5]`: a high-speed
     # camera's capture in one file, the ambient frame its last page.

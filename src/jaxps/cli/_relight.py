@@ -150,20 +150,21 @@ def relight_capture(
         images = cap.images.mean(axis=-1) if cap.images.ndim == 4 else cap.images
 
         def fit():
+            # A sample clipped in its raw frame is left out of the fit (NaN): divided by its
+            # frame's intensity it may read below `fit_brdf`'s saturation level.
+            clipped = np.where(cap.saturated, np.nan, images)
             if near_positions is None:
                 ps = photometric_stereo(images, cap.lights, mask=cap.mask,
                                         sample_mask=~cap.saturated)
-                near, fit_images, fit_lights = None, images, cap.lights
+                near, fit_images, fit_lights = None, clipped, cap.lights
             else:
                 near = near_photometric_stereo(images, near_positions, mask=cap.mask,
                                                pixel_size=pixel_size, centre=centre,
                                                sample_mask=~cap.saturated,
                                                integration=_NEAR_STEPS_INTEGRATION)
                 ps = near.ps
-                # each sample as a unit-strength lamp at the pixel's own direction would give
-                # it; a saturated one is left out (NaN) rather than brought below the
-                # saturation level
-                fit_images = np.where(cap.saturated, np.nan, images / np.asarray(near.falloff))
+                # each sample as a unit-strength lamp at the pixel's own direction would give it
+                fit_images = clipped / np.asarray(near.falloff)
                 fit_lights = near.lights
             fit_mask = cap.mask & (np.asarray(ps.status) == 0)
             model = fit_brdf(fit_images, ps.normals, ps.albedo, fit_lights, mask=fit_mask,
