@@ -47,6 +47,11 @@ CASES = [
         (IMAGES * 255).astype(np.uint8), LIGHTS), "floating point"),
     ("ps: 16-bit scale", lambda: jaxps.photometric_stereo(IMAGES * 65535, LIGHTS), r"\[0, 1\]"),
     ("ps: empty image", lambda: jaxps.photometric_stereo(IMAGES[:, :0], LIGHTS), "one pixel"),
+    ("ps: shadow threshold at saturation", lambda: jaxps.photometric_stereo(
+        IMAGES, LIGHTS, shadow_threshold=1.0), "shadow_threshold .1. must be below saturation"),
+    ("batch: shadow threshold above saturation", lambda: jaxps.photometric_stereo_batch(
+        np.stack([IMAGES] * 2), LIGHTS, shadow_threshold=0.5, saturation=0.4),
+     "every sample would be dropped"),
     ("ps: irls max_steps", lambda: jaxps.photometric_stereo(
         IMAGES, LIGHTS, method="irls", max_steps=0), "max_steps"),
     ("ps: prior_weight", lambda: jaxps.photometric_stereo(

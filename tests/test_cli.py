@@ -416,6 +416,42 @@ def test_relight_leaves_samples_clipped_in_the_raw_frame_out_of_the_fit(tmp_path
     assert every - clipped - 10 <= summary["fit"]["n_samples"] <= every - clipped
 
 
+def test_a_run_with_no_pixel_solved_fails_and_lights_behind_the_subject_are_refused(
+        tmp_path, capsys):
+    # Until this test both ran to the end with exit status 0: frames too dark to solve (kept
+    # with --no-check-quality) left every pixel DARK, and a lights file pointing from the
+    # lamps to the subject left every pixel BACKFACING.
+    from jaxps import synthetic
+
+    scene = synthetic.render_scene(synthetic.face_like(48, 40), synthetic.scanner_lights(25.0))
+    folders = [tmp_path / "a", tmp_path / "b"]
+    for folder, scale in zip(folders, (1.0, 5e-4)):
+        folder.mkdir()
+        for k, img in enumerate(np.asarray(scene.images)):
+            cv2.imwrite(str(folder / f"f{k}.png"),
+                        np.round(img * scale * 65535).astype(np.uint16))
+    lights = tmp_path / "lights.txt"
+    np.savetxt(lights, np.asarray(scene.lights))
+    cv2.imwrite(str(tmp_path / "mask.png"), np.full((48, 40), 255, np.uint8))
+    options = ["--lights", str(lights), "--mask", str(tmp_path / "mask.png"), "--no-register",
+               "--no-check-quality"]
+    assert main(["reconstruct", str(folders[0]), *options, "--out", str(tmp_path / "ok")]) == 0
+    capsys.readouterr()
+    assert main(["reconstruct", str(folders[1]), *options, "--out", str(tmp_path / "none")]) == 1
+    assert "reconstruct: no pixel was solved: most (DARK, 1920) " in capsys.readouterr().err
+    assert (tmp_path / "none" / "normals.png").is_file()
+    # several captures: the dark one's row has the reason, exit status 1
+    assert main(["reconstruct", *map(str, folders), *options,
+                 "--out", str(tmp_path / "many")]) == 1
+    rows = json.loads((tmp_path / "many" / "summary.json").read_text())["captures"]
+    assert [r["error"][:21] for r in rows] == ["", "no pixel was solved: "]
+    behind = tmp_path / "behind.txt"
+    np.savetxt(behind, -np.asarray(scene.lights))
+    assert main(["reconstruct", str(folders[0]), "--lights", str(behind),
+                 "--out", str(tmp_path / "behind")]) == 2
+    assert f"every light in {behind} has l_z <= 0" in capsys.readouterr().err
+
+
 def test_reconstruct_pages_of_a_multi_page_tiff(tmp_path):
     # `jaxps reconstruct stack.tif[0] ... stack.tif[4] --ambient stack.tif[5]`: a high-speed
     # camera's capture in one file, the ambient frame its last page.

@@ -125,7 +125,9 @@ def load_capture(
     - `lights`: a `lights.txt` path or a `(K, 3)` array; `"auto"` (with a folder of frames):
       the one `.txt` file in the folder whose name contains "light", so that each capture of
       a batch (`jaxps reconstruct DIR1 DIR2 ... --lights auto`) takes its own calibration; or
-      `yale_names=True` to parse Yale-B-style names (`..._P00A+035E+15.pgm`).
+      `yale_names=True` to parse Yale-B-style names (`..._P00A+035E+15.pgm`). Each points
+      toward its lamp in the camera frame; a set with no light in front of the subject
+      (every `l_z <= 0`, as a file of directions from the lamps would give) is refused.
     - `ambient`: the ambient-only control frame, subtracted from every frame and clipped at 0;
       `"auto"` (with a folder of frames): the one file in the folder whose name contains
       "ambient", so that each capture of a batch (`jaxps reconstruct DIR1 DIR2 ...
@@ -228,11 +230,16 @@ def load_capture(
         light_array = load_lights(lights)
     else:
         light_array = validate_lights(lights)
+    source = f" in {os.fspath(lights)}" if isinstance(lights, (str, os.PathLike)) else ""
     if light_array is not None and len(light_array) != len(paths):
-        source = (f" in {os.fspath(lights)}" if isinstance(lights, (str, os.PathLike))
-                  else "")
         raise ValueError(f"lights: {len(paths)} frames but {len(light_array)} lights{source} "
                          "(one light per frame, in the frames' order)")
+    if light_array is not None and np.all(np.asarray(light_array)[:, 2] <= 0):
+        # every visible pixel would come back BACKFACING, and the run would look done
+        raise ValueError(
+            f"lights: every light{source} has l_z <= 0, behind the subject as the camera sees "
+            "it (x right, y up, z toward the camera, each vector pointing toward its lamp). "
+            "Directions from the lamps to the subject need their signs flipped")
 
     if ambient is not None:
         images = _minus_ambient_file(images, ambient, paths[0], linearize=linearize, bits=bits)

@@ -93,7 +93,8 @@ def reconstruct_parser(sub) -> None:
         "--out; with --obj also mesh.obj with mesh.mtl and the albedo as texture.png, with "
         "--points points.ply (point cloud with normals). "
         "Several capture folders: each capture's files in OUT/<folder>/ (all but the report), "
-        "summary.json and summary.csv.",
+        "summary.json and summary.csv. Exit status 2 for bad input, 1 when a capture has no "
+        "pixel solved (its files are written all the same) or, with several, fails.",
     )
     p.add_argument("frames", nargs="+", help="a folder of frames, or the frame files in order "
                    "(a multi-page TIFF: its pages; one page: FILE.tif[N]); several folders are "

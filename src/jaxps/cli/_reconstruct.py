@@ -7,6 +7,7 @@ folders, `reconstruct_many` solves each as a capture (one progress bar, a summar
 from __future__ import annotations
 
 import os
+import sys
 from collections.abc import Sequence
 from concurrent.futures import ThreadPoolExecutor
 
@@ -435,7 +436,21 @@ def run(args) -> int:
     print(f"reconstructed {size['frames']} frames of {size['height']}x{size['width']} "
           f"-> {args.out}/ (pixels: {counts})")
     print("timings: " + ", ".join(f"{k} {v:.3f} s" for k, v in summary["timings_s"].items()))
+    if why := _nothing_solved(summary["status_counts"]):
+        print(f"reconstruct: {why} (the outputs are written all the same)", file=sys.stderr)
+        return 1
     return 0
+
+
+def _nothing_solved(counts: dict[str, int]) -> str | None:
+    """Why no pixel of a capture was solved, from its `status_counts`; None if one was."""
+    if counts.get("OK", 0):
+        return None
+    failed = {k: v for k, v in counts.items() if k != "MASKED"}
+    if not failed:
+        return "no pixel was solved: the mask is empty"
+    worst = max(failed, key=failed.get)
+    return f"no pixel was solved: most ({worst}, {failed[worst]}) because {Status[worst].message}"
 
 
 def summary_table(rows: Sequence[dict]) -> str:
@@ -475,7 +490,8 @@ def reconstruct_many(
     `check_quality`, flagged frames are dropped before the intensities are estimated and the
     frames registered, and named with their first reason in the `dropped` column. A
     capture that cannot be loaded or keeps fewer than 3 frames is reported (`error` column) and
-    its result is None; nothing is skipped silently. `light_positions`, `pixel_size`: near
+    its result is None; one with no pixel solved is reported there too, with its result.
+    Nothing is skipped silently. `light_positions`, `pixel_size`: near
     lamps, the same for every capture, as for `reconstruct` (each capture is then solved by
     `near_photometric_stereo`; the rows gain `near_steps` and `near_converged`).
     `method`, `shadow_threshold`: as for `reconstruct`. The `motion` column gives the largest
@@ -536,6 +552,8 @@ def reconstruct_many(
             ok = int(np.sum(np.asarray(res.status) == Status.OK))
             row["ok_pixels"] = ok
             row["ok_%"] = 100.0 * ok / max(int(cap.mask.sum()), 1)
+            if why := _nothing_solved(status_counts(res.status)):
+                row["error"] = why
         except (ValueError, FileNotFoundError) as err:
             row["error"] = str(err).splitlines()[0]
         results.append(res)
@@ -549,8 +567,8 @@ def _run_many(args) -> int:
     `OUT/<folder>/` what one capture's run writes (`_write_outputs`: normals, albedo, the
     height integrated with `--integration`, status, mesh.ply and the `--obj` / `--points`
     meshes, preview), prints a summary table and writes `OUT/summary.json` and
-    `OUT/summary.csv` (the table). Returns 1 if any capture failed (named in the table), else
-    0. `--report` takes one capture."""
+    `OUT/summary.csv` (the table). Returns 1 if any capture failed or had no pixel solved
+    (named in the table), else 0. `--report` takes one capture."""
     if args.report:
         raise ValueError("--report takes one capture; give the frames of one capture, or run "
                          "'jaxps reconstruct' on each folder with --report")

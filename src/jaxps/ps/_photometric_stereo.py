@@ -66,6 +66,10 @@ def _sample_thresholds(shadow_threshold: float | None = None, saturation: float 
     # NaN compares false with every sample: every sample would be dropped, every pixel failed
     if shadow_threshold is not None and np.isnan(shadow_threshold):
         raise ValueError("shadow_threshold must be a number or None (keep every sample), got nan")
+    if shadow_threshold is not None and shadow_threshold >= saturation:
+        # a sample is usable only below saturation and at or above the shadow threshold
+        raise ValueError(f"shadow_threshold ({shadow_threshold:g}) must be below saturation "
+                         f"({saturation:g}): every sample would be dropped")
     return dark_threshold, saturation, -np.inf if shadow_threshold is None else shadow_threshold
 
 
@@ -199,7 +203,8 @@ def photometric_stereo(
     - `method`: one of `jaxps.PS_METHODS`.
     - `sample_mask`: `(K, H, W)` bool, samples allowed into the solve (e.g. not saturated in
       the raw frame before ambient subtraction).
-    - `shadow_threshold`: drop samples whose intensity is below this (default: keep all).
+    - `shadow_threshold`: drop samples whose intensity is below this (default: keep all);
+      below `saturation`.
     - `saturation`: samples at or above this are treated as saturated and dropped.
     - `dark_threshold`: a pixel whose brightest finite sample is at or below this is `DARK`.
     - `**options`: passed to the chosen solver (e.g. step limits of iterative methods).
