@@ -176,6 +176,11 @@ CASES = [
         HEIGHT, LIGHTS[:, :2]), "lights"),
     ("sweep: name", lambda: stability.sweep("blur"), "name"),
     ("status_counts: floats", lambda: jaxps.status_counts(np.array([1.5])), "status"),
+    # synthetic scenes (`jaxps demo --size -5` was a TypeError, `--noise -1` no noise)
+    ("face_like: negative size", lambda: jaxps.synthetic.face_like(-5), "h must be an int"),
+    ("sphere: width", lambda: jaxps.synthetic.sphere(16, 1), "w must be an int"),
+    ("render_scene: negative noise", lambda: jaxps.synthetic.render_scene(
+        jaxps.synthetic.sphere(16), LIGHTS, noise=-0.01, key=0), "noise must be"),
 ]
 
 

@@ -182,6 +182,11 @@ def test_report_rejects_a_folder_that_is_not_a_run(tmp_path):
     with pytest.raises(FileNotFoundError, match="not a jaxps run"):
         report.write_report(tmp_path)
     assert main(["report", str(tmp_path)]) == 2
+    # a run whose summary.json was cut short: the error names the file (before: JSON's own
+    # message alone)
+    (tmp_path / "summary.json").write_text('{"frames": [')
+    with pytest.raises(ValueError, match=r"summary.json is not valid JSON"):
+        report.write_report(tmp_path)
 
 
 def test_report_escapes_names(synthetic_run, tmp_path):

@@ -46,6 +46,16 @@ def _pixel_grid(h: int, w: int):
     return np.meshgrid(x, y)
 
 
+_MIN_SIZE = 2
+
+
+def _pixels(name: str, n) -> int:
+    """`n` as an int image size, or a `ValueError` naming `name`."""
+    if not (isinstance(n, (int, np.integer)) and n >= _MIN_SIZE):
+        raise ValueError(f"{name} must be an int of at least {_MIN_SIZE} pixels, got {n!r}")
+    return int(n)
+
+
 def _surface_from_function(fn, h: int, w: int, mask) -> Surface:
     x, y = _pixel_grid(h, w)
     xs, ys = jnp.asarray(x.ravel()), jnp.asarray(y.ravel())
@@ -62,7 +72,8 @@ def sphere(h: int = 128, w: int | None = None, *, radius: float | None = None,
 
     The mask keeps pixels whose normal is within `max_zenith_deg` of the view axis.
     """
-    w = h if w is None else w
+    h = _pixels("h", h)
+    w = h if w is None else _pixels("w", w)
     r = 0.45 * min(h, w) if radius is None else float(radius)
     x, y = _pixel_grid(h, w)
     rr = np.sqrt(x**2 + y**2)
@@ -79,7 +90,8 @@ def face_like(h: int = 160, w: int | None = None) -> Surface:
 
     Smooth everywhere inside an elliptical mask; heights up to about 0.35 H.
     """
-    w = int(round(h * 0.8)) if w is None else w
+    h = _pixels("h", h)
+    w = int(round(h * 0.8)) if w is None else _pixels("w", w)
     s = 0.5 * min(h, w / 0.8)
     a, b = 0.78 * s, 0.95 * s  # head half-width and half-height in pixels
 
@@ -131,6 +143,8 @@ def render_scene(
     Noise has standard deviation `noise` (in [0, 1] intensity units) and needs `key`, a JAX
     PRNG key or an int seed (`jax.random.key(seed)`).
     """
+    if not noise >= 0:
+        raise ValueError(f"noise must be a standard deviation >= 0, got {noise}")
     h, w = surface.mask.shape
     if albedo is None:
         x, y = _pixel_grid(h, w)

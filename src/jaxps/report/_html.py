@@ -106,7 +106,10 @@ def write_report(
 
     summary = {}
     if (run / "summary.json").is_file():
-        summary = json.loads((run / "summary.json").read_text())
+        try:
+            summary = json.loads((run / "summary.json").read_text())
+        except json.JSONDecodeError as err:
+            raise ValueError(f"{run / 'summary.json'} is not valid JSON: {err}") from None
     normals = read_normal_map(run / "normals.png") if (run / "normals.png").is_file() else None
     status = np.load(run / "status.npy") if (run / "status.npy").is_file() else None
     height = np.load(run / "height.npy") if (run / "height.npy").is_file() else None
