@@ -91,7 +91,7 @@ def face_like(h: int = 160, w: int | None = None) -> Surface:
     Smooth everywhere inside an elliptical mask; heights up to about 0.35 H.
     """
     h = _pixels("h", h)
-    w = int(round(h * 0.8)) if w is None else _pixels("w", w)
+    w = round(h * 0.8) if w is None else _pixels("w", w)
     s = 0.5 * min(h, w / 0.8)
     a, b = 0.78 * s, 0.95 * s  # head half-width and half-height in pixels
 
