@@ -448,9 +448,9 @@ def _nothing_solved(counts: dict[str, int]) -> str | None:
         return None
     failed = {k: v for k, v in counts.items() if k != "MASKED"}
     if not failed:
-        return "no pixel was solved: the mask is empty"
+        return "no pixel was solved; the mask is empty"
     worst = max(failed, key=failed.get)
-    return f"no pixel was solved: most ({worst}, {failed[worst]}) because {Status[worst].message}"
+    return f"no pixel was solved; {failed[worst]} are {worst}: {Status[worst].message}"
 
 
 def summary_table(rows: Sequence[dict]) -> str:
