@@ -416,7 +416,7 @@ def test_relight_leaves_samples_clipped_in_the_raw_frame_out_of_the_fit(tmp_path
     assert every - clipped - 10 <= summary["fit"]["n_samples"] <= every - clipped
 
 
-def test_a_run_with_no_pixel_solved_fails_and_lights_behind_the_subject_are_refused(
+def test_a_run_with_no_pixel_solved_fails_and_bad_lights_or_out_are_refused(
         tmp_path, capsys):
     # Until this test both ran to the end with exit status 0: frames too dark to solve (kept
     # with --no-check-quality) left every pixel DARK, and a lights file pointing from the
@@ -451,6 +451,10 @@ def test_a_run_with_no_pixel_solved_fails_and_lights_behind_the_subject_are_refu
     assert main(["reconstruct", str(folders[0]), "--lights", str(behind),
                  "--out", str(tmp_path / "behind")]) == 2
     assert f"every light in {behind} has l_z <= 0" in capsys.readouterr().err
+    # an output folder that is a file: refused before the work (was an OSError at the end)
+    for command in ("reconstruct", "relight"):
+        assert main([command, str(folders[0]), *options, "--out", str(lights)]) == 2
+        assert f"--out {lights} is a file" in capsys.readouterr().err
 
 
 def test_reconstruct_pages_of_a_multi_page_tiff(tmp_path):

@@ -6,6 +6,7 @@ import argparse
 import gc
 import importlib
 import importlib.metadata
+import os
 import sys
 
 from . import _args
@@ -56,6 +57,12 @@ def _log_above_bars():
 def _run(argv, freeze):
     parser = build_parser()
     args = parser.parse_args(argv)
+    out = getattr(args, "out", None)
+    if args.command != "report" and out and os.path.exists(out) and not os.path.isdir(out):
+        # before the work: writing the outputs would fail only at the end
+        print(f"jaxps {args.command}: error: --out {out} is a file; the outputs need a folder",
+              file=sys.stderr)
+        return 2
     enable_compilation_cache()
     _log_above_bars()
     try:
