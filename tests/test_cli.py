@@ -391,9 +391,10 @@ def test_relit_images_of_srgb_frames_are_srgb(tmp_path):
 
 
 def test_relight_leaves_samples_clipped_in_the_raw_frame_out_of_the_fit(tmp_path):
-    # One flash 1.6x the others clips 82 samples of its frame. Divided by its estimated
-    # intensity (about 1.4 against the others') they read below 1, where fit_brdf's own
-    # saturation level no longer finds them; until this test the distant-light fit took them in.
+    # One flash 1.6x the others clips more than 50 samples of its frame. Divided by its
+    # estimated intensity (above 1.3 against the others') they read below 1, where fit_brdf's
+    # own saturation level no longer finds them; until this test the distant-light fit took
+    # them in.
     from jaxps import synthetic
 
     scene = synthetic.render_scene(synthetic.face_like(48, 40), synthetic.scanner_lights(25.0))
