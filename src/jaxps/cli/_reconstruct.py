@@ -549,10 +549,10 @@ def reconstruct_many(
                                                integration=_NEAR_STEPS_INTEGRATION)
                 res = near.ps
                 row.update(near_steps=int(near.steps), near_converged=bool(near.converged))
-            ok = int(np.sum(np.asarray(res.status) == Status.OK))
-            row["ok_pixels"] = ok
-            row["ok_%"] = 100.0 * ok / max(int(cap.mask.sum()), 1)
-            if why := _nothing_solved(status_counts(res.status)):
+            counts = status_counts(res.status)
+            row["ok_pixels"] = counts.get("OK", 0)
+            row["ok_%"] = 100.0 * row["ok_pixels"] / max(int(cap.mask.sum()), 1)
+            if why := _nothing_solved(counts):
                 row["error"] = why
         except (ValueError, FileNotFoundError) as err:
             row["error"] = str(err).splitlines()[0]

@@ -152,11 +152,11 @@ def relight_capture(
         def fit():
             # A sample clipped in its raw frame is left out of the fit (NaN): divided by its
             # frame's intensity it may read below `fit_brdf`'s saturation level.
-            clipped = np.where(cap.saturated, np.nan, images)
+            unclipped = np.where(cap.saturated, np.nan, images)
             if near_positions is None:
                 ps = photometric_stereo(images, cap.lights, mask=cap.mask,
                                         sample_mask=~cap.saturated)
-                near, fit_images, fit_lights = None, clipped, cap.lights
+                near, fit_images, fit_lights = None, unclipped, cap.lights
             else:
                 near = near_photometric_stereo(images, near_positions, mask=cap.mask,
                                                pixel_size=pixel_size, centre=centre,
@@ -164,7 +164,7 @@ def relight_capture(
                                                integration=_NEAR_STEPS_INTEGRATION)
                 ps = near.ps
                 # each sample as a unit-strength lamp at the pixel's own direction would give it
-                fit_images = clipped / np.asarray(near.falloff)
+                fit_images = unclipped / np.asarray(near.falloff)
                 fit_lights = near.lights
             fit_mask = cap.mask & (np.asarray(ps.status) == 0)
             model = fit_brdf(fit_images, ps.normals, ps.albedo, fit_lights, mask=fit_mask,
