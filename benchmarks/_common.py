@@ -35,6 +35,18 @@ def data_dir() -> pathlib.Path:
     return pathlib.Path(os.environ.get("JAXPS_DATA", ROOT.parent / "shared" / "data"))
 
 
+SHARED_SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
+
+
+def yale_subjects() -> list[str]:
+    """The Yale B subjects the face benchmarks score by default: every `yaleB*` folder in
+    `data_dir() / "yaleb"`, sorted, so that subjects added beside the five shared ones (or a
+    `$JAXPS_DATA` holding others) are scored without naming them. The five shared names when
+    there is no such folder (each script then says that the data is missing)."""
+    found = sorted(p.name for p in (data_dir() / "yaleb").glob("yaleB*") if p.is_dir())
+    return found or list(SHARED_SUBJECTS)
+
+
 def clean_frames(images, angles, label: str = ""):
     """`(K,)` bool: the Yale B frames that pass `jaxps.check_frames` (two of yaleB02's are
     interlace-combed). Only the frames within 60 deg of the view axis (the ones the benchmarks
@@ -156,12 +168,12 @@ def environment() -> dict:
         "allocator": {k: v for k, v in os.environ.items()
                       if k == "GLIBC_TUNABLES" or k.startswith("MALLOC_")},
         "transparent_hugepage": _thp_mode(),
-        "cpu": _cpu(),
+        "cpu": cpu_model(),
         "date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
     }
 
 
-def _cpu() -> str | None:
+def cpu_model() -> str | None:
     """The CPU's model name, family and model, and its widest vector extension (the machines
     these benchmarks run on change from day to day, and numpy's BLAS and XLA pick their
     kernels by them), if Linux."""

@@ -36,14 +36,14 @@ from jaxps.core._host import NO_YNN
 from jaxps.reflectance import _brdf, _parametric
 
 try:
-    from benchmarks._common import environment, interleaved, module_at, write_json
+    from benchmarks._common import environment, interleaved, module_at, write_json, yale_subjects
     from benchmarks.bench_brdf import cases
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import environment, interleaved, module_at, write_json
+    from benchmarks._common import environment, interleaved, module_at, write_json, yale_subjects
     from benchmarks.bench_brdf import cases
 
-SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
+SUBJECTS = yale_subjects()  # every yaleB* folder found (_common)
 
 
 def fit_with(module, c):

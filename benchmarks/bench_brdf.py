@@ -39,12 +39,12 @@ import jaxps
 from jaxps.reflectance._score import image_gains, rmse_gray
 
 try:
-    from benchmarks._common import clean_frames, interleaved
+    from benchmarks._common import clean_frames, cpu_model, interleaved
 except ImportError:  # run as a script
     import sys
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import clean_frames, interleaved
+    from benchmarks._common import clean_frames, cpu_model, interleaved
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 DATA = pathlib.Path(os.environ.get("JAXPS_DATA", ROOT.parent / "shared" / "data"))
@@ -595,7 +595,7 @@ def main():
     res = json.loads(path.read_text()) if path.exists() else {}
     res["machine"] = {"platform": platform.platform(), "cpus": os.cpu_count(),
                       "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
-                      "jax": jax.__version__, "backend": jax.default_backend()}
+                      "jax": jax.__version__, "backend": jax.default_backend(), "cpu": cpu_model()}
     if args.quick or os.environ.get("JAXPS_BENCH_QUICK"):
         res["speed_quick"] = speed(n_samples=20_000, h=350, w=425, steps=5)
         args.part = "none"

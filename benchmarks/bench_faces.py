@@ -2,7 +2,9 @@
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_faces.py [--subjects ...]
 
-For each shared Yale B subject (yaleB01..05, ambient frame subtracted):
+For each Yale B subject (ambient frame subtracted; by default every `yaleB*` folder of the
+data, the five shared yaleB01..05 here, so that other subjects put beside them are scored too;
+`--subjects` names some):
 
 - **reference**: `photometric_stereo(method="semi_calibrated")` over every light within 50 deg of
   the view axis whose frame `jaxps.check_frames` passes (yaleB02's two combed frames are left
@@ -52,12 +54,28 @@ import numpy as np
 import jaxps
 
 try:
-    from benchmarks._common import RESULTS, ROOT, block, data_dir, environment, write_json
+    from benchmarks._common import (
+        RESULTS,
+        ROOT,
+        block,
+        data_dir,
+        environment,
+        write_json,
+        yale_subjects,
+    )
 except ImportError:  # run as a script
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import RESULTS, ROOT, block, data_dir, environment, write_json
+    from benchmarks._common import (
+        RESULTS,
+        ROOT,
+        block,
+        data_dir,
+        environment,
+        write_json,
+        yale_subjects,
+    )
 
-SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
+SUBJECTS = yale_subjects()  # every yaleB* folder found (_common)
 CROSS = ((0, 0), (25, 0), (-25, 0), (0, 20), (0, -20))
 MAX_ANGLE = 50.0
 ALBEDO_MIN = 0.05

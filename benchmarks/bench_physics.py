@@ -29,9 +29,10 @@ import numpy as np
 import jaxps
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+from benchmarks._common import yale_subjects
 from benchmarks.bench_brdf import OUT, cases, gain_rmse, rmse
 
-SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
+SUBJECTS = yale_subjects()  # every yaleB* folder found (_common)
 METHODS = ("ggx", "blinn_phong", "wrap_ggx", "wrap", "oren_nayar")
 REGIONS = (16, 32, 0)  # 0: one specular albedo for the whole face
 REFINE = (False, True)  # normals refined jointly with the lobe

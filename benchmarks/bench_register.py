@@ -31,9 +31,9 @@ import numpy as np
 import jaxps
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from benchmarks._common import arguments, data_dir, environment, write_json  # noqa: E402
+from benchmarks._common import arguments, data_dir, environment, write_json, yale_subjects  # noqa: E402
 
-SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
+SUBJECTS = yale_subjects()  # every yaleB* folder found (_common)
 
 
 def _median_s(fn, repeats=5):

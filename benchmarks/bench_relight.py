@@ -1,5 +1,6 @@
-"""Held-out relighting on the five shared Yale B faces: every model against Lambert's law, and
-`fit_brdf(method="auto")`'s settings chosen leave-one-subject-out.
+"""Held-out relighting on the Yale B faces (every `yaleB*` folder of the data: the five shared
+ones here): every model against Lambert's law, and `fit_brdf(method="auto")`'s settings chosen
+leave-one-subject-out.
 
     OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_relight.py \
         [--subjects yaleB01 ...] [--models lambertian mlp ...] [--candidates mlp ...] \
@@ -43,18 +44,20 @@ from jaxps.reflectance._auto import choose_regions, lolo_folds
 
 try:
     from benchmarks import bench_brdf
+    from benchmarks._common import yale_subjects
     from benchmarks.bench_brdf import METHODS, cases
 except ImportError:  # run as a script
     import sys
 
     sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
     from benchmarks import bench_brdf
+    from benchmarks._common import yale_subjects
     from benchmarks.bench_brdf import METHODS, cases
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "results"
 IMAGES = ROOT / "docs" / "images"
-SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
+SUBJECTS = yale_subjects()  # every yaleB* folder found (_common)
 REGIONS = (1, 2, 4, 8)
 MARGINS = (0.0, 1.0, 2.0, 3.0)
 PICTURE_LIGHT = (-20, 10)  # one held-out light within 30 deg, shown in the pictures

@@ -43,10 +43,11 @@ import sys
 import numpy as np
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+from benchmarks._common import yale_subjects
 from benchmarks.bench_brdf import cases, gain_rmse
 
 OUT = pathlib.Path(__file__).resolve().parent / "results" / "relight_bound.json"
-SUBJECTS = ("yaleB01", "yaleB02", "yaleB03", "yaleB04", "yaleB05")
+SUBJECTS = yale_subjects()  # every yaleB* folder found (_common)
 SIGMAS = (5.0, 10.0, 20.0)
 
 

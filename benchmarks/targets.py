@@ -180,6 +180,12 @@ def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: list[dict] 
     return out
 
 
+def machine(result: dict) -> str:
+    """The CPU a result was measured on (`_common.environment`), or "not recorded"."""
+    env = result.get("env") or result.get("machine") or {}
+    return env.get("cpu") or "not recorded"
+
+
 def markdown(table: list[dict]) -> str:
     lines = ["| target | bound | figure (each run) | met |", "|---|---|---|---|"]
     for r in table:
@@ -205,16 +211,24 @@ def main(argv=None) -> dict:
                 for name in ("integration", "robust")}
     brdf = [b for b in args.brdf if pathlib.Path(b).is_file() or (RESULTS / b).is_file()]
     optional["brdf"] = [load(b) for b in brdf]
-    table = rows([load(c) for c in args.core], [load(b) for b in args.batch],
-                 [load(c) for c in args.cli], **optional)
+    inputs = {"core": [load(c) for c in args.core], "batch": [load(b) for b in args.batch],
+              "cli": [load(c) for c in args.cli]}
+    table = rows(inputs["core"], inputs["batch"], inputs["cli"], **optional)
+    # the same-run ratios depend on the CPU, and the machines change from day to day
+    machines = {f"{kind} {name}": machine(result)
+                for kind, names in (("core", args.core), ("batch", args.batch),
+                                    ("cli", args.cli), ("brdf", brdf))
+                for name, result in zip(names, inputs.get(kind, optional["brdf"]))}
     payload = {"command": "PYTHONPATH=src python benchmarks/targets.py "
                           + " ".join(sys.argv[1:] if argv is None else argv),
                "inputs": {"core": args.core, "batch": args.batch, "cli": args.cli, "brdf": brdf,
                           **{k: f"{k}.json" for k, v in optional.items()
                              if k != "brdf" and v is not None}},
-               "targets": table}
+               "machines": machines, "targets": table}
     path = write_json(args.out, payload)
     print(markdown(table))
+    for cpu in sorted(set(machines.values())):
+        print(f"on {cpu}: " + ", ".join(k for k, v in machines.items() if v == cpu))
     print(f"wrote {path}")
     return payload
 
