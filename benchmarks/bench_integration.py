@@ -20,6 +20,7 @@ import json
 import os
 import pathlib
 import platform
+import sys
 import time
 
 import cv2
@@ -30,6 +31,12 @@ import scipy.sparse.linalg as sla
 
 import jaxps
 from jaxps.evaluate import angular_stats, height_stats
+
+try:
+    from benchmarks._common import cpu_model
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import cpu_model
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 OBJECTS = ("bear", "cat", "pot1", "reading")
@@ -211,6 +218,7 @@ def main():
     results = {
         "setup": {
             "machine": platform.processor() or platform.machine(),
+            "cpu": cpu_model(),
             "cpus": os.cpu_count(),
             "load_average_at_start": os.getloadavg(),
             "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),

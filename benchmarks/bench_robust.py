@@ -26,6 +26,12 @@ import jaxps
 from jaxps.evaluate import angular_stats
 from jaxps.stability import render_corrupted, ring_lights
 
+try:
+    from benchmarks._common import cpu_model
+except ImportError:  # run as a script
+    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
+    from benchmarks._common import cpu_model
+
 OUT = pathlib.Path(__file__).resolve().parent / "results"
 
 
@@ -119,7 +125,7 @@ def main():
 
     doc = {"machine": {"OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"),
                        "jax": jax.__version__, "device": str(jax.devices()[0]),
-                       "cpus": os.cpu_count()},
+                       "cpus": os.cpu_count(), "cpu": cpu_model()},
            "shape": [5, args.h, args.w], "object_pixels": n_obj,
            "scene": {"shadowed": float(np.asarray(scene.shadow)[:, mask].mean()),
                      "saturated": float((images[:, mask] >= 1).mean()),

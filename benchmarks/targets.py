@@ -182,7 +182,7 @@ def rows(core: list[dict], batch: list[dict], cli: list[dict], brdf: list[dict] 
 
 def machine(result: dict) -> str:
     """The CPU a result was measured on (`_common.environment`), or "not recorded"."""
-    env = result.get("env") or result.get("machine") or {}
+    env = result.get("env") or result.get("machine") or result.get("setup") or {}
     return env.get("cpu") or "not recorded"
 
 
@@ -204,12 +204,19 @@ def main(argv=None) -> dict:
         p.add_argument("--cli", nargs="+", default=["cli.json"], metavar="JSON")
         p.add_argument("--brdf", nargs="+", default=["brdf.json"], metavar="JSON",
                        help="runs of bench_brdf.py --part speed (those that exist are read)")
+        p.add_argument("--integration", default="integration.json", metavar="JSON",
+                       help="a run of bench_integration.py (read if it exists)")
+        p.add_argument("--robust", default="robust.json", metavar="JSON",
+                       help="a run of bench_robust.py (read if it exists)")
         p.add_argument("--out", default="targets", help="results/OUT.json")
 
     args = arguments(__doc__, configure=options, argv=argv)
-    optional = {name: load(f"{name}.json") if (RESULTS / f"{name}.json").is_file() else None
-                for name in ("integration", "robust")}
-    brdf = [b for b in args.brdf if pathlib.Path(b).is_file() or (RESULTS / b).is_file()]
+    def exists(name):
+        return pathlib.Path(name).is_file() or (RESULTS / name).is_file()
+
+    optional = {kind: load(name) if exists(name) else None
+                for kind, name in (("integration", args.integration), ("robust", args.robust))}
+    brdf = [b for b in args.brdf if exists(b)]
     optional["brdf"] = [load(b) for b in brdf]
     inputs = {"core": [load(c) for c in args.core], "batch": [load(b) for b in args.batch],
               "cli": [load(c) for c in args.cli]}
@@ -219,10 +226,12 @@ def main(argv=None) -> dict:
                 for kind, names in (("core", args.core), ("batch", args.batch),
                                     ("cli", args.cli), ("brdf", brdf))
                 for name, result in zip(names, inputs.get(kind, optional["brdf"]))}
+    machines.update({f"{kind} {getattr(args, kind)}": machine(optional[kind])
+                     for kind in ("integration", "robust") if optional[kind] is not None})
     payload = {"command": "PYTHONPATH=src python benchmarks/targets.py "
                           + " ".join(sys.argv[1:] if argv is None else argv),
                "inputs": {"core": args.core, "batch": args.batch, "cli": args.cli, "brdf": brdf,
-                          **{k: f"{k}.json" for k, v in optional.items()
+                          **{k: getattr(args, k) for k, v in optional.items()
                              if k != "brdf" and v is not None}},
                "machines": machines, "targets": table}
     path = write_json(args.out, payload)
