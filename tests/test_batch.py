@@ -545,7 +545,7 @@ def test_many_captures_drop_frames_before_the_intensities(tmp_path):
 
 def test_many_captures_report_motion(tmp_path):
     """The `motion` column: the largest shift between a capture's frames, and whether it was
-    undone (up to 4 px) or left. One frame moved by 2 and by 6 columns; the frame check is
+    undone (up to 4 px in these 96 px frames) or left. One frame moved by 2 and by 6 columns; the frame check is
     off, since it drops a frame of this face on black moved by 2 px as inconsistent."""
     import cv2
 

@@ -33,7 +33,14 @@ from ._files import (
     read_image,
     read_mask,
 )
-from ._quality import QualityReport, flag_inconsistent, only_inconsistent, screen_capture
+from ._quality import (
+    QualityReport,
+    _check_span,
+    flag_inconsistent,
+    lights_span,
+    only_inconsistent,
+    screen_capture,
+)
 from ._register import _shift, estimate_shifts
 from ._stack import _lit_level, _subtract_ambient, mask_from_intensity
 
@@ -43,8 +50,21 @@ __all__ = ["Capture", "load_capture", "target_ratios"]
 # as read: on still scenes the estimate reads shading changes as motion, up to 0.12 px on the psm
 # objects' 12 frames and 0.23 px on the rendered demo face at 1 MP, while the Yale B faces moved
 # up to 1.7-3.5 px (0.9-2.0 px within the five scanner frames). Above MAX_SHIFT a translation is
-# not a good enough model (the subject has probably turned as well).
-MIN_SHIFT, MAX_SHIFT = 0.5, 4.0
+# not a good enough model (the subject has probably turned as well). MAX_SHIFT was set on those
+# frames, 168 px across; a larger window allows as much motion in proportion (`motion_limit`).
+MIN_SHIFT, MAX_SHIFT, MAX_SHIFT_ACROSS = 0.5, 4.0, 168
+
+
+def motion_limit(shape: tuple[int, int], mask: np.ndarray | None = None) -> float:
+    """The largest shift, in pixels, that `load_capture` undoes: `MAX_SHIFT` per
+    `MAX_SHIFT_ACROSS` pixels of the shorter side of the registration window (the mask's
+    bounding box, else the frame), and never less than `MAX_SHIFT`. So a capture read at
+    twice the size is registered alike."""
+    side = min(shape)
+    if mask is not None and mask.any():
+        ys, xs = np.nonzero(mask)
+        side = min(np.ptp(ys), np.ptp(xs)) + 1
+    return MAX_SHIFT * max(1.0, side / MAX_SHIFT_ACROSS)
 
 
 class Capture(NamedTuple):
@@ -152,15 +172,23 @@ def load_capture(
       `mask` when one is given) and drop the flagged ones (logged on logger `"jaxps"`, named
       in `Capture.dropped`; `ValueError` if fewer than 3 remain). On by default: one
       interlace-combed frame of five costs yaleB02 4 degrees of median normal error
-      (docs/captures.md); False keeps every frame. With `register`, a frame flagged only as
+      (docs/captures.md); False keeps every frame. `ValueError` too, naming the dropped frames,
+      when the frames left are lit from directions that cannot determine a normal (e.g.
+      the three of a cross of five left once both side frames are dropped). With
+      `register`, a frame flagged only as
       inconsistent with the others (which a frame that moved is) is kept until the motion
       is undone, and the frames' consistency is judged again then (`Capture.frame_check`
       holds the last verdict).
     - `register`: measure each frame's motion against the frame lit closest to the view axis
       (`jaxps.estimate_shifts` on the given mask's box, else the whole frame) and, when the
-      largest shift is between `MIN_SHIFT` = 0.5 px and `MAX_SHIFT` = 4 px, move the frames
-      back (cubic spline) and leave a border as wide as that shift out of the mask. Larger
-      motion is logged and left alone. The Yale B faces moved up to 1.7-3.5 px between frames;
+      largest shift is between `MIN_SHIFT` = 0.5 px and the limit, move the frames back
+      (cubic spline) and leave a border as wide as that shift out of the mask. The limit
+      (`motion_limit`) is `MAX_SHIFT` = 4 px per 168 px of the shorter side of the mask's box
+      (else of the frame), at least 4 px: 4 px on the Yale B frames, 24.4 px on 1280x1024
+      ones. With `check_quality`, frames that moved further are flagged ("moved N px"),
+      logged and dropped and the others registered, as long as 3 frames are left whose
+      lights span 3-D; otherwise, and with `check_quality=False`, larger motion is logged
+      and every frame left as read. The Yale B faces moved up to 1.7-3.5 px between frames;
       registering their five scanner frames lowered the median normal error by 0.6-1.8 degrees
       on every subject (`benchmarks/bench_faces.py --register`; docs/captures.md, "Motion").
     - `intensity_mask`: a mask image path or `(H, W)` bool array (full frame) of a flat, matte
@@ -306,11 +334,18 @@ def load_capture(
 
     shifts, border = None, 0
     if register:
-        images, saturated, shifts, border = _register(images, saturated, light_array,
-                                                      mask_array, names)
+        images, saturated, shifts, border, far = _register(
+            images, saturated, light_array, mask_array, names, drop_far=frame_check is not None)
+        kept = np.flatnonzero(~far)
+        if far.any():  # moved too far to undo: dropped, as a flagged frame is
+            frame_check = _flag_moved(frame_check, names, far, shifts)
         if frame_check is not None and (border or any(map(only_inconsistent,
                                                             frame_check.frames))):
-            kept, frame_check = _check_again(images, names, frame_check, mask_array, border)
+            again, frame_check = _check_again(images[kept], [names[i] for i in kept],
+                                              frame_check, mask_array, border)
+            kept = kept[again]
+            _check_span(light_array, kept, names, frame_check)
+        if len(kept) < len(names):
             images, saturated, shifts = images[kept], saturated[kept], shifts[kept]
             names = tuple(names[i] for i in kept)
             light_array = None if light_array is None else light_array[kept]
@@ -615,21 +650,44 @@ def _check_again(images, names, report, mask, border):
     return np.array(kept), checks
 
 
-def _register(images, saturated, lights, mask, names):
-    """`load_capture`'s motion step: `(images, saturated, shifts, border)`; `border` is 0 when
-    the frames were left as they were."""
+def _register(images, saturated, lights, mask, names, drop_far=False):
+    """`load_capture`'s motion step: `(images, saturated, shifts, border, far)`. `border` is 0
+    when no frame was moved. `far` `(K,)` marks the frames that moved more than
+    `motion_limit`, for the caller to drop: with `drop_far`, when at least 3 frames are left
+    whose lights span 3-D, the others are registered without them. Otherwise (or without
+    `drop_far`) every frame is left as read, and `far` is all False. Both are logged."""
+    log = logging.getLogger("jaxps")
     reference = 0 if lights is None else int(np.argmax(np.asarray(lights)[:, 2]))
     shifts = estimate_shifts(images, reference=reference, mask=mask)
-    largest = float(np.max(np.abs(shifts)))
+    limit = motion_limit(images.shape[1:3], mask)
+    size = np.max(np.abs(shifts), axis=1)
+    far = size > limit
+    if far.any():
+        moved = ", ".join(n for n, f in zip(names, far) if f)
+        if not (drop_far and (~far).sum() >= 3 and lights_span(lights, ~far)):
+            log.warning("load_capture: frames %s moved up to %.1f px against %s (more than "
+                        "%.1f px); left unregistered", moved, size.max(), names[reference], limit)
+            return images, saturated, shifts, 0, np.zeros(len(names), bool)
+        log.warning("load_capture: frames %s moved up to %.1f px against %s (more than %.1f "
+                    "px): dropped, the others registered", moved, size.max(), names[reference],
+                    limit)
+    largest = float(size[~far].max())
     if largest < MIN_SHIFT:
-        return images, saturated, shifts, 0
-    if largest > MAX_SHIFT:
-        moved = [n for n, s in zip(names, shifts) if np.max(np.abs(s)) > MAX_SHIFT]
-        logging.getLogger("jaxps").warning(
-            "load_capture: frames %s moved up to %.1f px against %s (more than %.0f px); "
-            "left unregistered", ", ".join(moved), largest, names[reference], MAX_SHIFT)
-        return images, saturated, shifts, 0
+        return images, saturated, shifts, 0, far
+    undo = np.where(far[:, None], 0.0, -shifts)  # frames to be dropped stay as they are
     # a sample is saturated if a saturated raw sample lies within a pixel of it
-    moved_sat = _shift(saturated.astype(np.float32), -shifts, order=1) > 0
-    return (np.clip(_shift(images, -shifts), 0, 1), moved_sat, shifts,
-            int(np.ceil(largest)))
+    moved_sat = _shift(saturated.astype(np.float32), undo, order=1) > 0
+    return (np.clip(_shift(images, undo), 0, 1), moved_sat, shifts,
+            int(np.ceil(largest)), far)
+
+
+def _flag_moved(report, names, far, shifts):
+    """`report` with each frame of `names` marked in `far` flagged as having moved too far."""
+    checks = list(report.frames)
+    for name, f, s in zip(names, far, shifts):
+        if f:
+            i = next(c.index for c in checks if c.name == name)
+            checks[i] = checks[i]._replace(
+                reasons=((f"moved {np.max(np.abs(s)):.1f} px, more than a translation "
+                          "undoes (the subject has probably turned as well)"),))
+    return QualityReport(tuple(checks))

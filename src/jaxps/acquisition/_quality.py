@@ -45,6 +45,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Bool, Float
 
+from ..lights._directions import validate_lights
+
 __all__ = [
     "FrameCheck",
     "QualityReport",
@@ -442,5 +444,35 @@ def screen_capture(images, saturated, names, lights, mask=None, spare_inconsiste
         raise ValueError(
             f"frames: only {len(kept)} of {len(names)} frames passed the quality checks, need "
             f"at least 3.\n{report.summary()}")
+    _check_span(lights, kept, names, report)
     return (images[kept], saturated[kept], tuple(names[i] for i in kept),
             None if lights is None else lights[kept], report)
+
+
+def lights_span(lights, keep) -> bool:
+    """Whether the lights of the frames `keep` selects can determine a normal (True when
+    there are no lights to judge)."""
+    if lights is None:
+        return True
+    try:
+        validate_lights(np.asarray(lights)[keep])
+    except ValueError:
+        return False
+    return True
+
+
+def _check_span(lights, kept, names, report):
+    """Raise when the frames kept have lights that cannot determine a normal (e.g. the three
+    left of a cross of five once both side frames are dropped), naming what was dropped,
+    instead of letting the solve fail on lights the caller never chose."""
+    if lights is None or len(kept) == len(names):
+        return
+    try:
+        validate_lights(np.asarray(lights)[kept])
+    except ValueError as err:
+        raise ValueError(
+            f"frames: the {len(kept)} frames that passed the quality checks "
+            f"({', '.join(names[i] for i in kept)}) are lit from directions that cannot "
+            f"determine a normal ({err}).\n{report.summary()}\nTo solve with every frame, "
+            "flagged ones included, turn the checks off (check_quality=False; "
+            "--no-check-quality).") from None

@@ -22,8 +22,9 @@ __all__ = ["add_decoding_args", "add_intensity_args", "add_light_args", "add_reg
 def add_register_arg(p) -> None:
     p.add_argument("--no-register", dest="register", action="store_false",
                    help="use the frames where they are; by default motion between frames "
-                   "(0.5-4 px against the frame lit closest to the view axis) is measured and "
-                   "undone (see load_capture)")
+                   "(from 0.5 px up to 4 px per 168 px of the frame, against the frame lit "
+                   "closest to the view axis) is measured and undone, and a frame that moved "
+                   "further is dropped (see load_capture)")
 
 
 def add_intensity_args(p) -> None:

@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 
 from ..acquisition import load_capture
-from ..acquisition._capture import MAX_SHIFT, _kept
+from ..acquisition._capture import MIN_SHIFT, _kept
 from ..acquisition._files import _decodes_srgb, _frame_paths
 from ..core import Status, status_counts
 from ..core._progress import Stages
@@ -343,7 +343,7 @@ def _motion_cell(cap) -> str:
         return ""
     largest = float(np.abs(np.asarray(cap.shifts)).max())
     return f"{largest:.2f} px" + (", undone" if cap.registered
-                                  else ", left" if largest > MAX_SHIFT else "")
+                                  else ", left" if largest >= MIN_SHIFT else "")
 
 
 def _dropped_why(cap) -> dict[str, list[str]]:
@@ -495,8 +495,8 @@ def reconstruct_many(
     lamps, the same for every capture, as for `reconstruct` (each capture is then solved by
     `near_photometric_stereo`; the rows gain `near_steps` and `near_converged`).
     `method`, `shadow_threshold`: as for `reconstruct`. The `motion` column gives the largest
-    shift between the frames (`Capture.shifts`) and whether it was undone, "left" when it was
-    more than `MAX_SHIFT` = 4 px; the `lights` column `load_capture`'s `check_lights`
+    shift between the frames kept (`Capture.shifts`) and whether it was undone, "left" when
+    it was too large to undo (`load_capture`, `register`); the `lights` column `load_capture`'s `check_lights`
     verdict: `ok`, `mirrored?`, `reordered?`, `hollow?` or `unchecked`.
 
     **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
