@@ -689,5 +689,5 @@ def _flag_moved(report, names, far, shifts):
             i = next(c.index for c in checks if c.name == name)
             checks[i] = checks[i]._replace(
                 reasons=((f"moved {np.max(np.abs(s)):.1f} px, more than a translation "
-                          "undoes (the subject has probably turned as well)"),))
+                          "undoes: the subject has probably turned as well"),))
     return QualityReport(tuple(checks))
