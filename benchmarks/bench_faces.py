@@ -53,27 +53,16 @@ import numpy as np
 
 import jaxps
 
-try:
-    from benchmarks._common import (
-        RESULTS,
-        ROOT,
-        block,
-        data_dir,
-        environment,
-        write_json,
-        yale_subjects,
-    )
-except ImportError:  # run as a script
-    sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-    from benchmarks._common import (
-        RESULTS,
-        ROOT,
-        block,
-        data_dir,
-        environment,
-        write_json,
-        yale_subjects,
-    )
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))  # run as a script too
+from benchmarks._common import (
+    RESULTS,
+    ROOT,
+    block,
+    data_dir,
+    environment,
+    write_json,
+    yale_subjects,
+)
 
 SUBJECTS = yale_subjects()  # every yaleB* folder found (_common)
 CROSS = ((0, 0), (25, 0), (-25, 0), (0, 20), (0, -20))
