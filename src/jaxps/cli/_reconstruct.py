@@ -496,8 +496,9 @@ def reconstruct_many(
     `near_photometric_stereo`; the rows gain `near_steps` and `near_converged`).
     `method`, `shadow_threshold`: as for `reconstruct`. The `motion` column gives the largest
     shift between the frames kept (`Capture.shifts`) and whether it was undone, "left" when
-    it was too large to undo (`load_capture`, `register`); the `lights` column `load_capture`'s `check_lights`
-    verdict: `ok`, `mirrored?`, `reordered?`, `hollow?` or `unchecked`.
+    it was too large to undo (`load_capture`, `register`); the `lights` column
+    `load_capture`'s `check_lights` verdict: `ok`, `mirrored?`, `reordered?`, `hollow?` or
+    `unchecked`.
 
     **Returns:** `(results, rows)`: one `PSResult` (or None) and one summary dict per folder;
     `summary_table(rows)` formats the rows.
