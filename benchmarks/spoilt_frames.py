@@ -19,6 +19,11 @@ from each frame to the next (frame k moved 3k px, up to 12), solved by `jaxps re
 FRAMES --lights lights.txt` and scored against its known normals where it was rendered
 (frame 0, the frontal one, stays put).
 
+And every frame of each subject's folder (64 lights, up to 130 degrees off axis) through
+`load_capture` with its defaults and `photometric_stereo`, against the same reference: how
+many frames are kept and registered, the off-axis angles of those dropped as moved, and the
+median error (`whole_folder`).
+
 Per run: the exit status, the frames dropped with their reasons and the motion measured
 between the frames kept (`summary.json`), the
 command's error when it stopped, and the median angular error of the normals it wrote
@@ -146,6 +151,29 @@ def walk_through(step: int = 3) -> dict:
     return row
 
 
+def whole_folder(subject: str, reference, region) -> dict:
+    """All 64 frames of the folder through `load_capture` and `photometric_stereo`."""
+    from jaxps.acquisition import load_capture
+
+    folder = bf.data_dir() / "yaleb" / subject
+    paths = sorted(folder.glob(f"{subject}_P00A*.pgm"))
+    cap = load_capture(paths, yale_names=True, ambient=folder / f"{subject}_P00_Ambient.pgm")
+    res = jaxps.photometric_stereo(cap.images, cap.lights, mask=cap.mask,
+                                   sample_mask=~cap.saturated)
+    angle = np.asarray(jaxps.angular_error(res.normals, reference))
+    moved = [jaxps.parse_yale_name(f.name) for f in cap.frame_check.flagged
+             if f.reasons[0].startswith("moved")]
+    row = {"frames": len(paths), "kept": len(cap.names), "registered": bool(cap.registered),
+           "largest_kept_shift_px": float(np.abs(np.asarray(cap.shifts)).max()),
+           "dropped_as_moved_off_axis_deg": sorted(round(float(bf.off_axis(a, e)))
+                                                   for a, e in moved),
+           "median_deg": float(np.median(angle[region & (np.asarray(res.status) == 0)]))}
+    print(f"{subject} whole folder: {row['kept']} of {row['frames']} frames kept, registered "
+          f"{row['registered']}, {row['median_deg']:.2f} deg; dropped as moved at "
+          f"{row['dropped_as_moved_off_axis_deg']} deg off axis", flush=True)
+    return row
+
+
 def subject_rows(subject: str) -> dict:
     import cv2
 
@@ -158,7 +186,7 @@ def subject_rows(subject: str) -> dict:
     ref = bf.semi(frames, keys)
     region = (np.asarray(ref.status == 0) & np.asarray(ref.albedo > bf.ALBEDO_MIN)
               & bf.inner(ref.status.shape))
-    rows = {}
+    rows = {"whole_folder": whole_folder(subject, np.asarray(ref.normals), region)}
     for kind in SPOILS:
         rows[kind] = row = run(subject, kind, raw, ambient, np.asarray(ref.normals), region)
         deg = "-" if row["median_deg"] is None else f"{row['median_deg']:.2f}"

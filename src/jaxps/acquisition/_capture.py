@@ -669,8 +669,8 @@ def _register(images, saturated, lights, mask, names, drop_far=False):
                         "%.1f px); left unregistered", moved, size.max(), names[reference], limit)
             return images, saturated, shifts, 0, np.zeros(len(names), bool)
         log.warning("load_capture: frames %s moved up to %.1f px against %s (more than %.1f "
-                    "px): dropped, the others registered", moved, size.max(), names[reference],
-                    limit)
+                    "px), or are too unlike it to measure: dropped, the others registered",
+                    moved, size.max(), names[reference], limit)
     largest = float(size[~far].max())
     if largest < MIN_SHIFT:
         return images, saturated, shifts, 0, far
@@ -689,5 +689,5 @@ def _flag_moved(report, names, far, shifts):
             i = next(c.index for c in checks if c.name == name)
             checks[i] = checks[i]._replace(
                 reasons=((f"moved {np.max(np.abs(s)):.1f} px, more than a translation "
-                          "undoes: the subject has probably turned as well"),))
+                          "undoes (or too unlike the reference frame to measure)"),))
     return QualityReport(tuple(checks))
