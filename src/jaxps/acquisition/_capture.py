@@ -185,7 +185,8 @@ def load_capture(
       (cubic spline) and leave a border as wide as that shift out of the mask. The limit
       (`motion_limit`) is `MAX_SHIFT` = 4 px per 168 px of the shorter side of the mask's box
       (else of the frame), at least 4 px: 4 px on the Yale B frames, 24.4 px on 1280x1024
-      ones. With `check_quality`, frames that moved further are flagged ("moved N px"),
+      ones. With `check_quality`, frames measured further away (moved, or lit too
+      differently to measure, as from 70 degrees off axis) are flagged ("moved N px"),
       logged and dropped and the others registered, as long as 3 frames are left whose
       lights span 3-D; otherwise, and with `check_quality=False`, larger motion is logged
       and every frame left as read. The Yale B faces moved up to 1.7-3.5 px between frames;
