@@ -250,6 +250,21 @@ def test_reconstruct_with_an_emulated_target_on_a_real_face(tmp_path, data):
     assert err["target"] < 3.5 < 4.5 < err["default"]
 
 
+def test_the_dropped_frames_line_names_five_and_counts_the_rest():
+    """A whole Yale B folder drops over 20 frames; the printed line named each with its reason
+    in one line of thousands of characters. It names five, and the summary keeps them all."""
+    from jaxps.cli._reconstruct import _dropped_line
+
+    why = {f"f{i}.pgm": [f"reason {i}", "another"] for i in range(7)}
+    line = _dropped_line({"dropped_why": why})
+    assert line == ("dropped 7 flagged frames: f0.pgm (reason 0), f1.pgm (reason 1), f2.pgm "
+                    "(reason 2), f3.pgm (reason 3), f4.pgm (reason 4), and 2 more "
+                    '(summary.json, "dropped_why")')
+    five = dict(list(why.items())[:5])
+    assert _dropped_line({"dropped_why": five}) == (
+        "dropped flagged frames " + ", ".join(f"f{i}.pgm (reason {i})" for i in range(5)))
+
+
 def test_reconstruct_check_quality_drops_combed_frame(tmp_path, data, capsys):
     """yaleB02's +25,0 frame is interlace-combed: the frame checks (on by default) drop it from
     a single capture, solve with the other four and name it in the summary; with

@@ -357,9 +357,15 @@ def _dropped_text(why: dict[str, list[str]]) -> str:
     return ", ".join(f"{name} ({reasons[0]})" for name, reasons in why.items())
 
 
-def _dropped_line(summary: dict) -> str:
-    """The printed line naming the dropped frames, each with its first reason."""
-    return "dropped flagged frames " + _dropped_text(summary["dropped_why"])
+def _dropped_line(summary: dict, shown: int = 5) -> str:
+    """The printed line naming the dropped frames, each with its first reason: the first
+    `shown` of them, then how many more (a whole Yale B folder drops over 20)."""
+    why = summary["dropped_why"]
+    if len(why) <= shown:
+        return "dropped flagged frames " + _dropped_text(why)
+    first = dict(list(why.items())[:shown])
+    return (f"dropped {len(why)} flagged frames: " + _dropped_text(first)
+            + f", and {len(why) - shown} more (summary.json, \"dropped_why\")")
 
 
 def _light_check(cap) -> dict | None:
