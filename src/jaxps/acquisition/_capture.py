@@ -690,5 +690,5 @@ def _flag_moved(report, names, far, shifts):
             i = next(c.index for c in checks if c.name == name)
             checks[i] = checks[i]._replace(
                 reasons=((f"moved {np.max(np.abs(s)):.1f} px, more than a translation "
-                          "undoes (or too unlike the reference frame to measure)"),))
+                          "undoes, or too unlike the reference frame to measure"),))
     return QualityReport(tuple(checks))
