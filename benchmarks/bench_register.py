@@ -31,7 +31,7 @@ import numpy as np
 import jaxps
 
 sys.path.insert(0, str(pathlib.Path(__file__).resolve().parents[1]))
-from benchmarks._common import arguments, data_dir, environment, write_json, yale_subjects  # noqa: E402
+from benchmarks._common import arguments, data_dir, environment, write_json, yale_subjects
 
 SUBJECTS = yale_subjects()  # every yaleB* folder found (_common)
 
