@@ -218,16 +218,16 @@ def main(argv=None) -> dict:
                 for kind, name in (("integration", args.integration), ("robust", args.robust))}
     brdf = [b for b in args.brdf if exists(b)]
     optional["brdf"] = [load(b) for b in brdf]
-    inputs = {"core": [load(c) for c in args.core], "batch": [load(b) for b in args.batch],
-              "cli": [load(c) for c in args.cli]}
+    names = {"core": args.core, "batch": args.batch, "cli": args.cli, "brdf": brdf}
+    inputs = {kind: [load(n) for n in names[kind]] for kind in ("core", "batch", "cli")}
     table = rows(inputs["core"], inputs["batch"], inputs["cli"], **optional)
     # the same-run ratios depend on the CPU, and the machines change from day to day
-    machines = {f"{kind} {name}": machine(result)
-                for kind, names in (("core", args.core), ("batch", args.batch),
-                                    ("cli", args.cli), ("brdf", brdf))
-                for name, result in zip(names, inputs.get(kind, optional["brdf"]))}
-    machines.update({f"{kind} {getattr(args, kind)}": machine(optional[kind])
-                     for kind in ("integration", "robust") if optional[kind] is not None})
+    inputs["brdf"] = optional["brdf"]
+    for kind in ("integration", "robust"):
+        if optional[kind] is not None:
+            names[kind], inputs[kind] = [getattr(args, kind)], [optional[kind]]
+    machines = {f"{kind} {name}": machine(result) for kind in names
+                for name, result in zip(names[kind], inputs[kind], strict=True)}
     payload = {"command": "PYTHONPATH=src python benchmarks/targets.py "
                           + " ".join(sys.argv[1:] if argv is None else argv),
                "inputs": {"core": args.core, "batch": args.batch, "cli": args.cli, "brdf": brdf,

@@ -41,7 +41,7 @@ from ._quality import (
     only_inconsistent,
     screen_capture,
 )
-from ._register import _shift, estimate_shifts
+from ._register import _box, _shift, estimate_shifts
 from ._stack import _lit_level, _subtract_ambient, mask_from_intensity
 
 __all__ = ["Capture", "load_capture", "target_ratios"]
@@ -62,8 +62,8 @@ def motion_limit(shape: tuple[int, int], mask: np.ndarray | None = None) -> floa
     twice the size is registered alike."""
     side = min(shape)
     if mask is not None and mask.any():
-        ys, xs = np.nonzero(mask)
-        side = min(np.ptp(ys), np.ptp(xs)) + 1
+        y0, y1, x0, x1 = _box(mask, pad=0)
+        side = min(y1 - y0, x1 - x0)
     return MAX_SHIFT * max(1.0, side / MAX_SHIFT_ACROSS)
 
 

@@ -449,30 +449,33 @@ def screen_capture(images, saturated, names, lights, mask=None, spare_inconsiste
             None if lights is None else lights[kept], report)
 
 
+def _span_error(lights, keep) -> str | None:
+    """Why the lights of the frames `keep` selects cannot determine a normal (None when they
+    can, or when there are no lights to judge)."""
+    if lights is None:
+        return None
+    try:
+        validate_lights(np.asarray(lights)[keep])
+    except ValueError as err:
+        return str(err)
+    return None
+
+
 def lights_span(lights, keep) -> bool:
     """Whether the lights of the frames `keep` selects can determine a normal (True when
     there are no lights to judge)."""
-    if lights is None:
-        return True
-    try:
-        validate_lights(np.asarray(lights)[keep])
-    except ValueError:
-        return False
-    return True
+    return _span_error(lights, keep) is None
 
 
 def _check_span(lights, kept, names, report):
     """Raise when the frames kept have lights that cannot determine a normal (e.g. the three
     left of a cross of five once both side frames are dropped), naming what was dropped,
     instead of letting the solve fail on lights the caller never chose."""
-    if lights is None or len(kept) == len(names):
-        return
-    try:
-        validate_lights(np.asarray(lights)[kept])
-    except ValueError as err:
+    err = None if len(kept) == len(names) else _span_error(lights, kept)
+    if err is not None:
         raise ValueError(
             f"frames: the {len(kept)} frames that passed the quality checks "
             f"({', '.join(names[i] for i in kept)}) are lit from directions that cannot "
             f"determine a normal ({err}).\n{report.summary()}\nTo solve with every frame, "
             "flagged ones included, turn the checks off (check_quality=False; "
-            "--no-check-quality).") from None
+            "--no-check-quality).")
